@@ -1,0 +1,1 @@
+"""Subcommands of the `bitcomm` CLI, one module each."""

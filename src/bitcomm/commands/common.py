@@ -1,0 +1,76 @@
+"""Flags shared by every command that runs the task: the environment and the channel."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import bad_value
+from bitcomm.evaluation import EvalResult
+
+
+def _int_list(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip() != "")
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated agent numbers, got {text!r}") from None
+
+
+def _groups(text: str) -> tuple[tuple[int, ...], ...]:
+    return tuple(_int_list(group) for group in text.split(";"))
+
+
+def add_task_flags(parser: argparse.ArgumentParser) -> None:
+    """Every environment and channel parameter of SPEC sections 1 and 2, with its default."""
+    env, ch = EnvConfig(), ChannelConfig()
+    g = parser.add_argument_group("task (environment and channel)")
+    g.add_argument("--size", type=int, default=env.size, help="grid side (default %(default)s)")
+    g.add_argument("--agents", type=int, default=env.n_agents, help="number of agents (default %(default)s)")
+    g.add_argument("--max-steps", type=int, default=env.max_steps, help="truncation length (default %(default)s)")
+    g.add_argument("--observes", type=_int_list, default=None, help="whose goal each agent sees, e.g. 1,0 (default: ring)")
+    g.add_argument("--bits", type=int, default=ch.bits, help="message bits K (default %(default)s)")
+    g.add_argument(
+        "--recipients", type=_groups, default=None, help="who hears each agent, e.g. '1,2;0;0' (default: whose goal it sees)"
+    )
+    g.add_argument("--delay", type=int, default=ch.delay, help="message delay in steps (default %(default)s)")
+    g.add_argument("--flip-prob", type=float, default=ch.flip_prob, help="bit flip probability (default %(default)s)")
+    g.add_argument("--drop-prob", type=float, default=ch.drop_prob, help="message drop probability (default %(default)s)")
+    g.add_argument("--act-fail-prob", type=float, default=env.act_fail_prob, help="actuation: move not executed")
+    g.add_argument("--act-delay", type=int, default=env.act_delay, help="actuation: steps before a move takes effect")
+
+
+def task_from_args(args: argparse.Namespace) -> TaskConfig:
+    env = EnvConfig(
+        size=args.size,
+        n_agents=args.agents,
+        max_steps=args.max_steps,
+        observes=args.observes,
+        act_fail_prob=args.act_fail_prob,
+        act_delay=args.act_delay,
+    )
+    channel = ChannelConfig(
+        bits=args.bits, recipients=args.recipients, delay=args.delay, flip_prob=args.flip_prob, drop_prob=args.drop_prob
+    )
+    return TaskConfig(env, channel)
+
+
+def check_episodes(episodes: int) -> int:
+    if episodes < 1:
+        raise bad_value("episodes", episodes, "must be an integer >= 1")
+    return episodes
+
+
+def print_result(result: EvalResult, as_json: bool, title: str) -> None:
+    """`--json`: one object; otherwise a short human summary."""
+    if as_json:
+        json.dump(result.to_dict(), sys.stdout)
+        sys.stdout.write("\n")
+        return
+    lo, hi = result.ci95
+    print(
+        f"{title}: {result.episodes} episodes, mean episode length {result.mean_episode_length:.2f} "
+        f"(95% CI {lo:.2f}-{hi:.2f}), mean team return {result.mean_team_return:.3f}, "
+        f"success rate {result.success_rate:.3f}"
+    )

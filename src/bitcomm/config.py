@@ -1,0 +1,164 @@
+"""Configuration of the task: the grid world (SPEC section 1) and the channel (SPEC section 2).
+
+Defaults live here and only here. Every value is validated when the dataclass is built, so a
+bad value fails early with one line that names it (see `bitcomm.errors`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bitcomm.errors import bad_value
+
+
+def _check_probability(name: str, value: float) -> None:
+    if not (isinstance(value, (int, float)) and 0.0 <= float(value) <= 1.0):
+        raise bad_value(name, value, "must be a probability in [0, 1]")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """The goal-exchange grid world (SPEC section 1)."""
+
+    size: int = 10
+    """The grid is `size x size` cells."""
+    n_agents: int = 2
+    """Agents share the grid and may stand on the same cell."""
+    max_steps: int = 256
+    """An episode is truncated after this many steps."""
+    observes: tuple[int, ...] | None = None
+    """`observes[i]` is the agent whose goal agent `i` sees; None means the ring `(i + 1) % n`."""
+    act_fail_prob: float = 0.0
+    """Actuation noise: probability that a chosen move is not executed (the agent stays); 0 in the paper."""
+    act_delay: int = 0
+    """Actuation noise: moves take effect this many steps after they are chosen (stay before that)."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.size, int) or self.size < 2:
+            raise bad_value("size", self.size, "the grid must be at least 2 cells a side")
+        if not isinstance(self.n_agents, int) or self.n_agents < 2:
+            raise bad_value("n_agents", self.n_agents, "at least 2 agents are needed")
+        if not isinstance(self.max_steps, int) or self.max_steps < 1:
+            raise bad_value("max_steps", self.max_steps, "must be an integer >= 1")
+        _check_probability("act_fail_prob", self.act_fail_prob)
+        if not isinstance(self.act_delay, int) or self.act_delay < 0:
+            raise bad_value("act_delay", self.act_delay, "must be an integer >= 0")
+        if self.observes is not None:
+            obs = tuple(self.observes)
+            if len(obs) != self.n_agents:
+                raise bad_value("observes", obs, f"needs one entry per agent ({self.n_agents})")
+            for i, j in enumerate(obs):
+                if not isinstance(j, (int, np.integer)) or not 0 <= j < self.n_agents:
+                    raise bad_value("observes", obs, f"entries must be agents 0..{self.n_agents - 1}")
+                if i == j:
+                    raise bad_value(
+                        "observes", obs, f"agent {i} may not observe its own goal (any other agent is allowed)"
+                    )
+            object.__setattr__(self, "observes", tuple(int(j) for j in obs))
+
+    @property
+    def observed(self) -> tuple[int, ...]:
+        """Whose goal each agent sees, with the ring default filled in."""
+        if self.observes is not None:
+            return self.observes
+        return tuple((i + 1) % self.n_agents for i in range(self.n_agents))
+
+    @property
+    def cells(self) -> int:
+        return self.size * self.size
+
+
+@dataclass(frozen=True)
+class ChannelConfig:
+    """The discrete, noisy message channel (SPEC section 2)."""
+
+    bits: int = 7
+    """Message size K; the channel always carries K bits."""
+    recipients: tuple[tuple[int, ...], ...] | None = None
+    """`recipients[j]`: the agents that receive agent j's message; None means the agent whose goal j sees."""
+    delay: int = 1
+    """A message sent at step t is received at step t + delay; before that the input is zeros."""
+    flip_prob: float = 0.0
+    """Each bit is flipped independently with this probability in transit."""
+    drop_prob: float = 0.0
+    """Each message is lost with this probability (received as all zeros, by every recipient)."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.bits, int) or not 1 <= self.bits <= 30:
+            raise bad_value("bits", self.bits, "must be an integer in [1, 30]")
+        if not isinstance(self.delay, int) or self.delay < 1:
+            raise bad_value("delay", self.delay, "must be an integer >= 1 (a message arrives one step later at the earliest)")
+        _check_probability("flip_prob", self.flip_prob)
+        _check_probability("drop_prob", self.drop_prob)
+        if self.recipients is not None:
+            object.__setattr__(self, "recipients", tuple(tuple(int(x) for x in r) for r in self.recipients))
+
+    @property
+    def messages(self) -> int:
+        """Size of the message space, 2^K."""
+        return 1 << self.bits
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """The environment and its channel together, with the checks that need both."""
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    channel: ChannelConfig = field(default_factory=ChannelConfig)
+
+    def __post_init__(self) -> None:
+        n = self.env.n_agents
+        recipients = self.recipient_lists
+        if len(recipients) != n:
+            raise bad_value("recipients", recipients, f"needs one entry per agent ({n})")
+        for j, rec in enumerate(recipients):
+            if len(rec) == 0 or len(set(rec)) != len(rec):
+                raise bad_value("recipients", recipients, "each agent sends to one or more distinct agents")
+            for x in rec:
+                if not 0 <= x < n or x == j:
+                    raise bad_value("recipients", recipients, f"recipients must be other agents in 0..{n - 1}")
+
+    @property
+    def recipient_lists(self) -> tuple[tuple[int, ...], ...]:
+        if self.channel.recipients is not None:
+            return self.channel.recipients
+        return tuple((x,) for x in self.env.observed)
+
+    @property
+    def recipient_matrix(self) -> np.ndarray:
+        """Boolean `(n, n)`: `[j, x]` is True when x receives j's message."""
+        n = self.env.n_agents
+        mat = np.zeros((n, n), dtype=bool)
+        for j, rec in enumerate(self.recipient_lists):
+            mat[j, list(rec)] = True
+        return mat
+
+    @property
+    def slot_senders(self) -> np.ndarray:
+        """`(n, slots)` int: the sender heard in each input slot of each agent, -1 for none.
+
+        An agent's message input holds one K-bit slot per sender it hears, ordered by sender index;
+        `slots` is the largest number of senders any agent hears (1 in the paper).
+        """
+        mat = self.recipient_matrix
+        senders = [np.flatnonzero(mat[:, x]) for x in range(self.env.n_agents)]
+        slots = max(1, max(len(s) for s in senders))
+        table = -np.ones((self.env.n_agents, slots), dtype=np.int64)
+        for x, s in enumerate(senders):
+            table[x, : len(s)] = s
+        return table
+
+    @property
+    def slots(self) -> int:
+        return int(self.slot_senders.shape[1])
+
+    def require_oracle_bits(self) -> None:
+        """The oracle names a goal cell in K bits, so it needs 2^K >= size^2."""
+        need = math.ceil(math.log2(self.env.cells))
+        if self.channel.bits < need:
+            raise bad_value(
+                "bits", self.channel.bits, f"the oracle needs at least {need} bits to name one of {self.env.cells} cells"
+            )

@@ -1,0 +1,47 @@
+"""The grid world and its channel stepped together: what a batch of policies sees and does."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from bitcomm.config import TaskConfig
+from bitcomm.envs.channel import Channel
+from bitcomm.envs.core import GoalExchangeCore, StepResult
+
+
+class Observation(NamedTuple):
+    """What the B x n agents and their critics see at one step (views of live buffers: copy to keep)."""
+
+    planes: np.ndarray  # (B, n, 2, S, S) uint8: own position, observed goal
+    received: np.ndarray  # (B, n, slots, K) uint8: messages arriving now
+    state: np.ndarray  # (B, 2n, S, S) uint8: every position, then every goal (critics only)
+    t: np.ndarray  # (B,) int: steps already taken in the episode
+
+
+class VecGoalExchange:
+    """B self-resetting episodes of the goal-exchange task with its K-bit channel."""
+
+    def __init__(self, task: TaskConfig, num_envs: int, seed: int | np.random.SeedSequence | None = None) -> None:
+        self.task = task
+        self.num_envs = num_envs
+        seq = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+        env_seed, channel_seed = seq.spawn(2)
+        self.core = GoalExchangeCore(task.env, num_envs, seed=env_seed)
+        self.channel = Channel(task, num_envs, seed=channel_seed)
+        self._received = self.channel.received()
+
+    def observe(self) -> Observation:
+        return Observation(self.core.obs, self._received, self.core.state, self.core.t)
+
+    def step(self, moves: np.ndarray, messages: np.ndarray) -> tuple[StepResult, np.ndarray]:
+        """Apply `(B, n)` moves and send `(B, n, K)` bits; returns the step and `(B, n)` dropped flags."""
+        result = self.core.step(moves)
+        dropped = self.channel.transmit(messages)
+        if result.finished.index.size:
+            done = np.zeros(self.num_envs, dtype=bool)
+            done[result.finished.index] = True
+            self.channel.reset(done)
+        self._received = self.channel.received()
+        return result, dropped
