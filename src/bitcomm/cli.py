@@ -10,7 +10,7 @@ from typing import NoReturn
 
 from bitcomm.errors import ConfigError
 
-COMMANDS = ("baseline",)
+COMMANDS = ("baseline", "render", "analyze")
 
 
 class _Parser(argparse.ArgumentParser):

@@ -1,0 +1,186 @@
+"""Where a command's policy comes from: a reference policy (`--policy oracle|random`) or a learned RUN.
+
+This module is the one place that turns command-line arguments into an `AgentPolicy` and the task it
+runs on, for `bitcomm render`, `analyze`, `deploy` and `sweep`. A learned policy is loaded through
+`bitcomm.Controller.load(RUN)` (a run folder or a checkpoint file); until that class exists, RUN is
+accepted and answered with one error line.
+
+The task of a learned policy is the one it was trained on (`controller.task`); task flags given on
+the command line change it (noise, delays, truncation). Flags left at their defaults do not, which is
+why the defaults are marked (`mark_task_defaults`): argparse alone cannot tell "--size 10" from no
+flag. Flags that change what the network takes in (size, agents, bits) must match the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+
+from bitcomm.agent_policies import AgentPolicy, ControllerAgent, OracleAgent, RandomAgent
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError, bad_value
+from bitcomm.policies import REFERENCE_POLICIES
+
+LEARNED_UNAVAILABLE = "learned policies need bitcomm.Controller, not available yet"
+
+# task flag (argparse dest) -> (config part, field); the flags of `bitcomm.commands.common.add_task_flags`
+TASK_FLAGS: dict[str, tuple[str, str]] = {
+    "size": ("env", "size"),
+    "agents": ("env", "n_agents"),
+    "max_steps": ("env", "max_steps"),
+    "observes": ("env", "observes"),
+    "act_fail_prob": ("env", "act_fail_prob"),
+    "act_delay": ("env", "act_delay"),
+    "bits": ("channel", "bits"),
+    "recipients": ("channel", "recipients"),
+    "delay": ("channel", "delay"),
+    "flip_prob": ("channel", "flip_prob"),
+    "drop_prob": ("channel", "drop_prob"),
+}
+INPUT_SHAPE_FLAGS = ("size", "agents", "bits")  # a trained network cannot take other values
+
+
+class _DefaultInt(int):
+    """An int default that argparse passes through untouched: the flag was not given."""
+
+
+class _DefaultFloat(float):
+    """A float default that argparse passes through untouched: the flag was not given."""
+
+
+def mark_task_defaults(parser: argparse.ArgumentParser) -> None:
+    """Tag the task flags' defaults so `resolve_task` can tell them from values the user typed.
+
+    Help text still shows the plain number (the tags are int/float subclasses).
+    """
+    for dest in TASK_FLAGS:
+        value = parser.get_default(dest)
+        if isinstance(value, bool) or value is None:
+            continue
+        if isinstance(value, int):
+            parser.set_defaults(**{dest: _DefaultInt(value)})
+        elif isinstance(value, float):
+            parser.set_defaults(**{dest: _DefaultFloat(value)})
+
+
+def given_task_flags(args: argparse.Namespace) -> dict[str, Any]:
+    """The task flags typed on the command line, by dest (untagged values that are not None)."""
+    out = {}
+    for dest in TASK_FLAGS:
+        value = getattr(args, dest, None)
+        if value is not None and not isinstance(value, (_DefaultInt, _DefaultFloat)):
+            out[dest] = value
+    return out
+
+
+def resolve_task(args: argparse.Namespace, base: TaskConfig, label: str = "RUN", strict: bool = False) -> TaskConfig:
+    """`base` with the task flags the user gave applied; `strict` refuses a different input shape."""
+    given = given_task_flags(args)
+    changes: dict[str, dict[str, Any]] = {"env": {}, "channel": {}}
+    for dest, value in given.items():
+        part, name = TASK_FLAGS[dest]
+        if strict and dest in INPUT_SHAPE_FLAGS and value != getattr(getattr(base, part), name):
+            raise bad_value(name, value, f"{label} was trained with {name}={getattr(getattr(base, part), name)}")
+        changes[part][name] = value
+    env: EnvConfig = dataclasses.replace(base.env, **changes["env"])
+    channel: ChannelConfig = dataclasses.replace(base.channel, **changes["channel"])
+    return TaskConfig(env, channel)
+
+
+@lru_cache(maxsize=4)
+def load_controller(run: str) -> Any:
+    """`bitcomm.Controller.load(run)`, once per path; one error line when it cannot be done."""
+    try:
+        from bitcomm import Controller  # type: ignore[attr-defined]
+    except ImportError:
+        raise ConfigError(LEARNED_UNAVAILABLE) from None
+    try:
+        return Controller.load(run)
+    except (OSError, ValueError, KeyError) as err:
+        raise ConfigError(f"cannot load RUN {run!r}: {err}") from None
+
+
+@dataclass(frozen=True)
+class PolicySource:
+    """A per-agent policy to build: `name` is a reference policy, or "run" with `run` a path."""
+
+    name: str = "oracle"
+    run: str | None = None
+    greedy: bool = False
+    """Learned policies only: most likely move and message instead of sampling (how they were trained)."""
+
+    def __post_init__(self) -> None:
+        if self.name == "run" and not self.run:
+            raise bad_value("RUN", self.run, "a run folder or checkpoint file is needed")
+        if self.name != "run" and self.name not in REFERENCE_POLICIES:
+            raise bad_value("policy", self.name, f"choose one of {', '.join(REFERENCE_POLICIES)}, or give RUN")
+
+    @property
+    def label(self) -> str:
+        return self.run if self.name == "run" and self.run else self.name
+
+    def base_task(self) -> TaskConfig:
+        """The task the policy belongs to: its training task for a run, the paper's defaults otherwise."""
+        if self.name == "run":
+            return load_controller(self.run).task  # type: ignore[no-any-return]
+        return TaskConfig()
+
+    def task_from_args(self, args: argparse.Namespace) -> TaskConfig:
+        """The task to run: `base_task()` changed by the task flags the user gave."""
+        return resolve_task(args, self.base_task(), label=f"RUN {self.run!r}", strict=self.name == "run")
+
+    def build(self, task: TaskConfig, seed: int | np.random.SeedSequence | None = None) -> AgentPolicy:
+        """The policy, for `task`; `seed` drives a random policy's draws."""
+        if self.name == "oracle":
+            return OracleAgent(task)
+        if self.name == "random":
+            return RandomAgent(task, seed)
+        return ControllerAgent(load_controller(self.run), greedy=self.greedy)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> PolicySource:
+        return cls(**data)
+
+
+def add_policy_flags(parser: argparse.ArgumentParser, several: bool = False) -> None:
+    """RUN (optional positional), `--policy` and `--greedy`; call after `add_task_flags`.
+
+    `several`: `--policy` may repeat and adds to RUN (for comparisons); otherwise it is RUN or one name.
+    """
+    parser.add_argument(
+        "run_path", nargs="?", default=None, metavar="RUN", help="run folder or checkpoint file of a learned policy"
+    )  # not `run`: the CLI dispatches on args.run
+    if several:
+        parser.add_argument(
+            "--policy", action="append", choices=REFERENCE_POLICIES, default=None,
+            help="reference policy to include (repeatable; default: oracle when no RUN)",
+        )  # fmt: skip
+    else:
+        parser.add_argument(
+            "--policy", choices=REFERENCE_POLICIES, default=None, help="reference policy (default: oracle when no RUN)"
+        )
+    parser.add_argument("--greedy", action="store_true", help="learned policies: most likely move and message")
+    mark_task_defaults(parser)
+
+
+def sources_from_args(args: argparse.Namespace) -> list[PolicySource]:
+    """Every policy named on the command line: RUN first, then each `--policy` (oracle if none)."""
+    names = args.policy if isinstance(args.policy, list) else ([args.policy] if args.policy else [])
+    sources = [PolicySource("run", args.run_path, args.greedy)] if args.run_path else []
+    sources += [PolicySource(name, None, args.greedy) for name in dict.fromkeys(names)]
+    return sources or [PolicySource("oracle")]
+
+
+def source_from_args(args: argparse.Namespace) -> PolicySource:
+    """The one policy of a command that runs one: RUN or `--policy`, not both."""
+    if args.run_path and args.policy:
+        raise bad_value("policy", args.policy, "give either RUN or --policy, not both")
+    return sources_from_args(args)[0]

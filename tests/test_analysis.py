@@ -1,0 +1,83 @@
+"""`bitcomm analyze`: plug-in estimators against hand values, the oracle's protocol, the CLI's files."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bitcomm.agent_policies import OracleAgent, RandomAgent
+from bitcomm.analysis import (
+    analyze_samples,
+    bit_maps,
+    channel_capacity,
+    collect_messages,
+    entropy,
+    fit_lookup_decoder,
+    mutual_information,
+)
+from bitcomm.cli import main
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+
+
+def test_estimators_on_hand_values() -> None:
+    assert entropy(np.array([0, 1, 2, 3])) == pytest.approx(2.0)
+    assert entropy(np.array([5, 5, 5])) == pytest.approx(0.0)
+    x = np.array([0, 0, 1, 1])
+    assert mutual_information(x, x) == pytest.approx(1.0)
+    assert mutual_information(x, np.array([0, 1, 0, 1])) == pytest.approx(0.0)
+    assert channel_capacity(7, 0.0) == pytest.approx(7.0)
+    h = -(0.05 * math.log2(0.05) + 0.95 * math.log2(0.95))
+    assert channel_capacity(7, 0.05) == pytest.approx(7 * (1 - h))
+    assert channel_capacity(3, 0.5) == pytest.approx(0.0)
+    table, default = fit_lookup_decoder(np.array([1, 1, 1, 2, 2]), np.array([7, 7, 3, 4, 4]))
+    assert table == {1: 7, 2: 4} and default in (7, 4)
+
+
+def test_oracle_transmits_the_whole_goal_without_noise() -> None:
+    task = TaskConfig()
+    samples = collect_messages(OracleAgent(task), task, samples=60_000, num_envs=512, seed=1)
+    r = analyze_samples(samples, task, "oracle")
+    assert r.transmitted_bits == pytest.approx(math.log2(100), abs=0.05)
+    assert r.transmitted_bits == pytest.approx(r.goal_entropy_bits, abs=1e-6)
+    assert r.decoder_accuracy == 1.0
+    assert r.capacity_bits == 7.0
+    # the last bit of row * 10 + column is the column's parity: one bit about the column, none about the row
+    assert r.per_bit[-1].mi_col == pytest.approx(1.0, abs=0.01)
+    assert r.per_bit[-1].mi_row < 0.01
+    maps = bit_maps(samples, task)
+    assert maps.shape == (7, 10, 10)
+    assert set(np.unique(maps[~np.isnan(maps)])) <= {0.0, 1.0}  # a deterministic code
+
+
+def test_noise_lowers_what_gets_through_and_random_says_nothing() -> None:
+    task = TaskConfig(channel=ChannelConfig(flip_prob=0.05))
+    r = analyze_samples(collect_messages(OracleAgent(task), task, 60_000, 512, seed=2), task)
+    assert r.transmitted_bits < r.capacity_bits < 7.0
+    assert 3.5 < r.transmitted_bits < 6.0
+    assert 0.3 < r.decoder_accuracy < 0.95
+    tiny = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
+    r = analyze_samples(collect_messages(RandomAgent(tiny, 0), tiny, 20_000, 256, seed=3), tiny)
+    assert r.transmitted_bits < 0.1 and max(b.mi_cell for b in r.per_bit) < 0.02
+
+
+def test_delay_pairs_each_delivery_with_its_own_message() -> None:
+    task = TaskConfig(EnvConfig(size=5), ChannelConfig(bits=5, delay=3))
+    r = analyze_samples(collect_messages(OracleAgent(task), task, 20_000, 256, seed=4), task)
+    assert r.decoder_accuracy == 1.0 and r.transmitted_bits == pytest.approx(r.goal_entropy_bits, abs=1e-6)
+
+
+def test_cli_writes_heatmaps_summary_and_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "an"
+    argv = ["analyze", "--policy", "oracle", "--size", "4", "--bits", "4", "--samples", "5000", "--envs", "128"]
+    assert main([*argv, "--out", str(out), "--json"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["transmitted_bits"] == pytest.approx(figures["goal_entropy_bits"], abs=1e-6)
+    assert len(figures["per_bit"]) == 4 and figures["capacity_bits"] == 4.0
+    assert (out / "bits.png").stat().st_size > 1000
+    assert (out / "bits.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    summary = (out / "summary.md").read_text()
+    assert "# Protocol analysis" in summary and "bits.png" in summary and summary.count("\n| ") >= 4 + 5

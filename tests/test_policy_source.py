@@ -1,0 +1,108 @@
+"""Per-agent policies and where they come from: the oracle one agent at a time is the batched oracle,
+task flags left at their defaults do not override a policy's own task, RUN without Controller is one line."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+
+from bitcomm.agent_policies import BatchedPolicy, ControllerAgent, OracleAgent
+from bitcomm.commands.common import add_task_flags
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.errors import ConfigError
+from bitcomm.evaluation import evaluate
+from bitcomm.policies import OraclePolicy
+from bitcomm.policy_source import (
+    LEARNED_UNAVAILABLE,
+    PolicySource,
+    add_policy_flags,
+    given_task_flags,
+    resolve_task,
+    source_from_args,
+    sources_from_args,
+)
+
+TASKS = [
+    TaskConfig(),
+    TaskConfig(EnvConfig(act_fail_prob=0.2, act_delay=1), ChannelConfig(flip_prob=0.1, drop_prob=0.2, delay=2)),
+    TaskConfig(
+        EnvConfig(size=5, n_agents=3, observes=(2, 0, 1)), ChannelConfig(bits=5, recipients=((2, 1), (0,), (1,)))
+    ),
+]
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_oracle_agent_is_the_batched_oracle(task: TaskConfig) -> None:
+    env = VecGoalExchange(task, 64, seed=5)
+    batched, per_agent = OraclePolicy(task), BatchedPolicy(OracleAgent(task))
+    for _ in range(30):
+        obs = env.observe()
+        (m1, b1), (m2, b2) = batched(obs), per_agent(obs)
+        np.testing.assert_array_equal(m1, m2)
+        np.testing.assert_array_equal(b1, b2)
+        env.step(m1, b1)
+    assert evaluate(per_agent, task, 300, seed=1) == evaluate(batched, task, 300, seed=1)
+
+
+class FakeController:
+    """What `bitcomm.Controller` promises: `.task` and `act(planes, received, greedy)`."""
+
+    task = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
+
+    def act(self, planes: np.ndarray, received: np.ndarray, greedy: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        n = planes.shape[0]
+        return np.full(n, 4 if greedy else 1), received[:, 0]
+
+
+def test_controller_agent_adapts_the_controller() -> None:
+    agent = ControllerAgent(FakeController(), greedy=True)
+    planes, received = np.zeros((3, 2, 4, 4), np.uint8), np.ones((3, 1, 4), np.uint8)
+    moves, bits = agent.act(planes, received, np.zeros(3, int), np.arange(3))
+    assert moves.tolist() == [4, 4, 4] and bits.dtype == np.uint8 and bits.shape == (3, 4)
+
+
+def parse(argv: list[str], several: bool = False) -> argparse.Namespace:
+    p = argparse.ArgumentParser()
+    add_task_flags(p)
+    add_policy_flags(p, several=several)
+    return p.parse_args(argv)
+
+
+def test_only_typed_task_flags_change_the_base_task() -> None:
+    base = TaskConfig(EnvConfig(size=4, max_steps=50), ChannelConfig(bits=4, delay=2))
+    args = parse(["--flip-prob", "0.1", "--act-delay", "2"])
+    assert given_task_flags(args) == {"flip_prob": 0.1, "act_delay": 2}
+    task = resolve_task(args, base)
+    assert task.env == EnvConfig(size=4, max_steps=50, act_delay=2)
+    assert task.channel == ChannelConfig(bits=4, delay=2, flip_prob=0.1)
+    # a typed value equal to the default still counts as typed
+    assert resolve_task(parse(["--size", "10", "--bits", "7"]), base).env.size == 10
+    with pytest.raises(ConfigError, match="size"):
+        resolve_task(parse(["--size", "10"]), base, strict=True)
+    # for reference policies the base is the paper's task, so the flags mean what they say
+    assert PolicySource("oracle").task_from_args(parse([])) == TaskConfig()
+    assert type(PolicySource("oracle").task_from_args(parse([])).env.size) is int
+
+
+def test_sources() -> None:
+    assert sources_from_args(parse([])) == [PolicySource("oracle")]
+    assert source_from_args(parse(["--policy", "random"])).name == "random"
+    several = sources_from_args(parse(["runs/a", "--policy", "oracle", "--policy", "random"], several=True))
+    assert [s.label for s in several] == ["runs/a", "oracle", "random"]
+    with pytest.raises(ConfigError, match="not both"):
+        source_from_args(parse(["runs/a", "--policy", "oracle"]))
+    with pytest.raises(ConfigError):
+        PolicySource("nonsense")
+    assert PolicySource.from_dict(PolicySource("run", "x", True).to_dict()) == PolicySource("run", "x", True)
+
+
+def test_run_needs_controller() -> None:
+    import bitcomm
+
+    if hasattr(bitcomm, "Controller"):
+        pytest.skip("Controller exists: learned policies are tested with it")
+    with pytest.raises(ConfigError, match=LEARNED_UNAVAILABLE):
+        PolicySource("run", "runs/none").base_task()
