@@ -8,20 +8,33 @@ The channel reports which messages it dropped: the improved estimator gives them
 
 from __future__ import annotations
 
-from typing import TypeVar
+import sys
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
-import torch
 
 from bitcomm.config import TaskConfig
 
-ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
+if TYPE_CHECKING:
+    import torch
+    from typing_extensions import TypeIs
+
+ArrayT = TypeVar("ArrayT", np.ndarray, "torch.Tensor")
+
+
+def _is_tensor(x: Any) -> TypeIs[torch.Tensor]:
+    """A torch tensor? Torch is not imported here: the environment and the CLI run without it,
+    and an object can only be a tensor once its caller has imported torch."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(x, torch.Tensor)
 
 
 def _powers(bits: int, like: ArrayT) -> ArrayT:
     """Place values of the K bits, most significant first."""
     p = [1 << (bits - 1 - k) for k in range(bits)]
-    if isinstance(like, torch.Tensor):
+    if _is_tensor(like):
+        import torch
+
         return torch.tensor(p, dtype=torch.int64, device=like.device)  # type: ignore[return-value]
     return np.asarray(p, dtype=np.int64)  # type: ignore[return-value]
 
@@ -29,7 +42,7 @@ def _powers(bits: int, like: ArrayT) -> ArrayT:
 def bits_to_index(bits: ArrayT) -> ArrayT:
     """`(..., K)` bits in {0, 1} -> `(...)` message index, bit 0 most significant."""
     powers = _powers(bits.shape[-1], bits)
-    if isinstance(bits, torch.Tensor):
+    if _is_tensor(bits):
         return (bits.long() * powers).sum(-1)  # type: ignore[return-value]
     return (bits.astype(np.int64) * powers).sum(-1)  # type: ignore[return-value]
 
@@ -37,14 +50,18 @@ def bits_to_index(bits: ArrayT) -> ArrayT:
 def index_to_bits(index: ArrayT, bits: int) -> ArrayT:
     """`(...)` message index -> `(..., K)` bits, the inverse of `bits_to_index`."""
     powers = _powers(bits, index)
-    if isinstance(index, torch.Tensor):
+    if _is_tensor(index):
+        import torch
+
         return ((index.long()[..., None] // powers) % 2).to(torch.uint8)  # type: ignore[return-value]
     return ((np.asarray(index, dtype=np.int64)[..., None] // powers) % 2).astype(np.uint8)  # type: ignore[return-value]
 
 
 def index_to_onehot(index: ArrayT, bits: int) -> ArrayT:
     """`(...)` message index -> `(..., 2^K)` one-hot float vector."""
-    if isinstance(index, torch.Tensor):
+    if _is_tensor(index):
+        import torch
+
         return torch.nn.functional.one_hot(index.long(), 1 << bits).float()  # type: ignore[return-value]
     return np.eye(1 << bits, dtype=np.float32)[np.asarray(index, dtype=np.int64)]  # type: ignore[return-value]
 

@@ -9,7 +9,9 @@ A move off the grid leaves the agent in place and counts as invalid.
 Reward of agent i after all moved: 0 on its goal; otherwise -0.3, +0.2 if its Manhattan distance
 shrank, -0.1 if it stayed or moved invalidly. Agents are trained on the team reward (the sum).
 An episode terminates once every agent is on its goal and is truncated after `max_steps`.
-Episodes reset themselves when they end; `step` reports the ones that finished.
+Episodes reset themselves when they end (unless `autoreset=False`, which leaves a finished episode in
+its terminal state until `reset` is called: the PettingZoo view needs that); `step` reports the ones
+that finished.
 
 Actuation noise (beyond the paper, default off): with `act_fail_prob` a chosen move is not executed
 (the agent stays), and with `act_delay` moves take effect that many steps late (stay before). The
@@ -52,9 +54,16 @@ class StepResult(NamedTuple):
 class GoalExchangeCore:
     """B episodes of the grid world; arrays in, arrays out, no Python loop over episodes or agents."""
 
-    def __init__(self, cfg: EnvConfig, num_envs: int, seed: int | np.random.SeedSequence | None = None) -> None:
+    def __init__(
+        self,
+        cfg: EnvConfig,
+        num_envs: int,
+        seed: int | np.random.SeedSequence | None = None,
+        autoreset: bool = True,
+    ) -> None:
         self.cfg = cfg
         self.num_envs = B = num_envs
+        self.autoreset = autoreset
         n, S = cfg.n_agents, cfg.size
         self.observed = np.asarray(cfg.observed, dtype=np.int64)
         seq = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
@@ -103,7 +112,7 @@ class GoalExchangeCore:
 
     # ------------------------------------------------------------------ step
     def step(self, moves: np.ndarray) -> StepResult:
-        """Apply `(B, n)` chosen moves; finished episodes are reported, then reset."""
+        """Apply `(B, n)` chosen moves; finished episodes are reported, then reset (if `autoreset`)."""
         cfg = self.cfg
         S = cfg.size
         executed = np.asarray(moves, dtype=np.int64)
@@ -142,6 +151,6 @@ class GoalExchangeCore:
         done = terminated | truncated
         idx = np.flatnonzero(done)
         finished = FinishedEpisodes(idx, self.t[idx].copy(), self.ep_return[idx].copy(), terminated[idx].copy())
-        if idx.size:
+        if idx.size and self.autoreset:
             self.reset(done)
         return StepResult(reward, team, terminated, truncated, finished)

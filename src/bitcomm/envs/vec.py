@@ -1,4 +1,8 @@
-"""The grid world and its channel stepped together: what a batch of policies sees and does."""
+"""The grid world and its channel stepped together: what a batch of policies sees and does.
+
+Episodes reset themselves (grid and messages in flight) when they end. With `autoreset=False` a
+finished episode keeps its terminal observation until `reset(mask)`; the PettingZoo view uses that.
+"""
 
 from __future__ import annotations
 
@@ -23,13 +27,26 @@ class Observation(NamedTuple):
 class VecGoalExchange:
     """B self-resetting episodes of the goal-exchange task with its K-bit channel."""
 
-    def __init__(self, task: TaskConfig, num_envs: int, seed: int | np.random.SeedSequence | None = None) -> None:
+    def __init__(
+        self,
+        task: TaskConfig,
+        num_envs: int,
+        seed: int | np.random.SeedSequence | None = None,
+        autoreset: bool = True,
+    ) -> None:
         self.task = task
         self.num_envs = num_envs
+        self.autoreset = autoreset
         seq = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
         env_seed, channel_seed = seq.spawn(2)
-        self.core = GoalExchangeCore(task.env, num_envs, seed=env_seed)
+        self.core = GoalExchangeCore(task.env, num_envs, seed=env_seed, autoreset=autoreset)
         self.channel = Channel(task, num_envs, seed=channel_seed)
+        self._received = self.channel.received()
+
+    def reset(self, mask: np.ndarray | None = None) -> None:
+        """Start new episodes in the slots of `mask` (every slot when None), with no messages in flight."""
+        self.core.reset(mask)
+        self.channel.reset(mask)
         self._received = self.channel.received()
 
     def observe(self) -> Observation:
@@ -39,7 +56,7 @@ class VecGoalExchange:
         """Apply `(B, n)` moves and send `(B, n, K)` bits; returns the step and `(B, n)` dropped flags."""
         result = self.core.step(moves)
         dropped = self.channel.transmit(messages)
-        if result.finished.index.size:
+        if result.finished.index.size and self.autoreset:
             done = np.zeros(self.num_envs, dtype=bool)
             done[result.finished.index] = True
             self.channel.reset(done)
