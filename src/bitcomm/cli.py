@@ -10,7 +10,7 @@ from typing import NoReturn
 
 from bitcomm.errors import ConfigError
 
-COMMANDS = ("baseline", "render", "analyze")
+COMMANDS = ("baseline", "render", "analyze", "deploy")
 
 
 class _Parser(argparse.ArgumentParser):

@@ -1,0 +1,276 @@
+"""The world process of the deploy runtime: it stands in for the robots and their positioning system.
+
+It holds the grid core (and with it the actuation noise `act_fail_prob`/`act_delay`), starts one
+process per agent (`python -m bitcomm.deploy.agent`), and steps the episodes in lockstep: each step it
+tells every agent its observation planes and the step index over TCP, collects their moves, and
+applies them. It never carries a message: agents exchange those among themselves over UDP.
+
+Episodes are those of `bitcomm.evaluation.evaluate` with the same seed (the same starts and goals), so
+the deployed policy and the simulated one face the same episode set. Actuation noise draws differ
+(the world steps one episode at a time), and so do the channel's.
+
+Every process ends when the run ends or when any of them dies: agents exit when the world's
+connection closes; the world stops and kills the agents when one of them closes its connection,
+exits or stays silent past the step timeout; everything is bounded by `timeout_s`.
+"""
+
+from __future__ import annotations
+
+import math
+import secrets
+import select
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import IO, Any
+
+import numpy as np
+
+from bitcomm.config import TaskConfig
+from bitcomm.deploy.protocol import LineSocket, PeerGone, encode_array, task_to_dict
+from bitcomm.envs.core import N_MOVES, GoalExchangeCore
+from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.evaluation import EVAL_CHUNK, EvalResult
+from bitcomm.policy_source import PolicySource
+
+
+class DeployError(RuntimeError):
+    """The run could not go on (an agent died, hung, or the time bound passed); one line."""
+
+
+@dataclass(frozen=True)
+class EpisodeOutcome:
+    index: int
+    length: int
+    team_return: float
+    success: bool
+    wall_s: float
+
+
+@dataclass(frozen=True)
+class DeployResult:
+    outcomes: list[EpisodeOutcome]
+    network: dict[str, int] = field(default_factory=dict)
+    """Datagram counts summed over agents: sent, dropped (on purpose), received, missing (at the deadline), late."""
+    startup_s: float = 0.0
+    wall_s: float = 0.0
+
+    @property
+    def summary(self) -> EvalResult:
+        return EvalResult.from_episodes(
+            np.array([o.length for o in self.outcomes]),
+            np.array([o.team_return for o in self.outcomes]),
+            np.array([o.success for o in self.outcomes]),
+        )
+
+
+def episode_set(task: TaskConfig, episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """`(E, n)` starts and goals of the first episodes `evaluate(..., episodes, seed)` plays."""
+    starts, goals = [], []
+    chunks = math.ceil(episodes / EVAL_CHUNK)
+    for c, chunk_seed in enumerate(np.random.SeedSequence(seed).spawn(chunks)):
+        env = VecGoalExchange(task, min(EVAL_CHUNK, episodes - c * EVAL_CHUNK), seed=chunk_seed)
+        starts.append(env.core.pos.copy())
+        goals.append(env.core.goal.copy())
+    return np.concatenate(starts), np.concatenate(goals)
+
+
+def place_episode(core: GoalExchangeCore, start: np.ndarray, goal: np.ndarray) -> None:
+    """Begin a fresh episode in slot 0 of `core` from the given start and goal cells.
+
+    `reset` clears the step count, return and pending moves; the planes are then redrawn from the
+    given cells with the layout of SPEC section 1 (a test checks it against the env's own planes).
+    """
+    core.reset()
+    S, n = core.cfg.size, core.cfg.n_agents
+    core.pos[0], core.goal[0] = start, goal
+    core.obs[0] = 0
+    core.state[0] = 0
+    for i in range(n):
+        core.obs[0, i, 0][divmod(int(start[i]), S)] = 1
+        core.obs[0, i, 1][divmod(int(goal[core.observed[i]]), S)] = 1
+        core.state[0, i][divmod(int(start[i]), S)] = 1
+        core.state[0, n + i][divmod(int(goal[i]), S)] = 1
+
+
+class _Agents:
+    """The agent processes and their control connections; `close` always leaves none running."""
+
+    def __init__(self, n: int, end: float) -> None:
+        self.n, self.end = n, end
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.token = secrets.token_hex(8)
+        port = self.listener.getsockname()[1]
+        self.logs: list[IO[bytes]] = []
+        self.procs: list[subprocess.Popen[bytes]] = []
+        for i in range(n):
+            log = tempfile.TemporaryFile()
+            self.logs.append(log)
+            cmd = [sys.executable, "-m", "bitcomm.deploy.agent", "--world", f"127.0.0.1:{port}", "--agent", str(i)]
+            self.procs.append(
+                subprocess.Popen([*cmd, "--token", self.token], stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+            )
+        self.conns: list[LineSocket | None] = [None] * n
+        self.udp_ports = [0] * n
+
+    def log_tail(self, i: int) -> str:
+        self.logs[i].seek(0)
+        lines = [x for x in self.logs[i].read().decode(errors="replace").splitlines() if x.strip()]
+        return lines[-1].strip() if lines else "no output"
+
+    def check_alive(self) -> None:
+        for i, proc in enumerate(self.procs):
+            code = proc.poll()
+            if code is not None:
+                raise DeployError(f"agent {i} exited with status {code}: {self.log_tail(i)}")
+
+    def deadline(self, within: float) -> float:
+        now = time.monotonic()
+        if now >= self.end:
+            raise DeployError("the run passed its time bound (--timeout)")
+        return min(self.end, now + within)
+
+    def accept(self, within: float = 60.0) -> None:
+        """Wait for every agent's hello (index, token, UDP port)."""
+        deadline = self.deadline(within)
+        while any(c is None for c in self.conns):
+            self.check_alive()
+            if time.monotonic() > deadline:
+                raise DeployError("agents did not connect in time")
+            ready, _, _ = select.select([self.listener], [], [], 0.2)
+            if not ready:
+                continue
+            sock, _ = self.listener.accept()
+            conn = LineSocket(sock)
+            try:
+                hello = conn.recv(self.deadline(10.0))
+            except (TimeoutError, PeerGone, ValueError):
+                conn.close()
+                continue
+            i = hello.get("agent")
+            if hello.get("token") != self.token or not isinstance(i, int) or not 0 <= i < self.n or self.conns[i]:
+                conn.close()  # not one of ours
+                continue
+            self.conns[i], self.udp_ports[i] = conn, int(hello["udp_port"])
+
+    def send(self, i: int, obj: dict[str, Any]) -> None:
+        try:
+            self._conn(i).send(obj)
+        except PeerGone:
+            self.check_alive()
+            raise DeployError(f"agent {i} closed its connection") from None
+
+    def recv(self, i: int, within: float, kind: str) -> dict[str, Any]:
+        """The next line from agent i, which must be of type `kind`."""
+        try:
+            msg = self._conn(i).recv(self.deadline(within))
+        except PeerGone:
+            time.sleep(0.05)  # let a dying process be reaped, to report its status
+            self.check_alive()
+            raise DeployError(f"agent {i} closed its connection") from None
+        except TimeoutError:
+            self.check_alive()
+            raise DeployError(f"agent {i} did not answer within {within:g} s") from None
+        if msg.get("type") != kind:
+            raise DeployError(f"agent {i} sent {msg.get('type')!r} where {kind!r} was expected")
+        return msg
+
+    def _conn(self, i: int) -> LineSocket:
+        conn = self.conns[i]
+        assert conn is not None
+        return conn
+
+    def close(self) -> None:
+        for conn in self.conns:
+            if conn is not None:
+                conn.close()
+        self.listener.close()
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=max(0.0, min(3.0, self.end + 3.0 - time.monotonic())))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        for log in self.logs:
+            log.close()
+
+
+def run_deploy(
+    source: PolicySource,
+    task: TaskConfig,
+    episodes: int,
+    seed: int = 0,
+    deadline_ms: float = 20.0,
+    timeout_s: float = 300.0,
+    step_timeout_s: float = 10.0,
+    on_episode: Callable[[EpisodeOutcome], None] | None = None,
+) -> DeployResult:
+    """Play `episodes` episodes with one process per agent exchanging messages over UDP on loopback.
+
+    `task.channel.drop_prob` and `flip_prob` act on the wire: each sender drops a datagram with
+    `drop_prob` (independently per recipient) and flips each bit with `flip_prob`, from its own seeded
+    stream. `deadline_ms`: how long after it learns its step an agent waits for that step's messages.
+    """
+    began = time.monotonic()
+    n = task.env.n_agents
+    starts, goals = episode_set(task, episodes, seed)
+    agents = _Agents(n, began + timeout_s)
+    try:
+        agents.accept()
+        run_id = secrets.randbits(32)
+        slot_senders = task.slot_senders
+        for i in range(n):
+            agents.send(i, {
+                "type": "config", "task": task_to_dict(task), "policy": source.to_dict(), "seed": seed,
+                "run_id": run_id, "deadline_ms": deadline_ms, "time_left_s": agents.end - time.monotonic() + 2.0,
+                "flip_prob": task.channel.flip_prob, "drop_prob": task.channel.drop_prob,
+                "peers": [agents.udp_ports[x] for x in task.recipient_lists[i]],
+                "slot_senders": slot_senders[i].tolist(),
+            })  # fmt: skip
+        for i in range(n):
+            agents.recv(i, 120.0, "ready")  # building a policy may load a network
+        startup = time.monotonic() - began
+
+        core = GoalExchangeCore(task.env, 1, seed=np.random.SeedSequence(seed, spawn_key=(n,)))
+        outcomes = []
+        for e in range(episodes):
+            place_episode(core, starts[e], goals[e])
+            t0 = time.perf_counter()
+            while True:
+                t = int(core.t[0])
+                for i in range(n):
+                    agents.send(i, {"type": "step", "episode": e, "t": t, "planes": encode_array(core.obs[0, i])})
+                moves = np.zeros((1, n), dtype=np.int64)
+                for i in range(n):
+                    reply = agents.recv(i, step_timeout_s, "move")
+                    move = reply.get("move")
+                    if reply.get("episode") != e or reply.get("t") != t or not isinstance(move, int):
+                        raise DeployError(f"agent {i} answered {reply} at episode {e}, step {t}")
+                    if not 0 <= move < N_MOVES:
+                        raise DeployError(f"agent {i} chose move {move}, outside 0..{N_MOVES - 1}")
+                    moves[0, i] = move
+                fin = core.step(moves).finished
+                if fin.index.size:
+                    outcome = EpisodeOutcome(
+                        e, int(fin.length[0]), float(fin.team_return[0]), bool(fin.success[0]), time.perf_counter() - t0
+                    )
+                    outcomes.append(outcome)
+                    if on_episode is not None:
+                        on_episode(outcome)
+                    break
+
+        network: dict[str, int] = {}
+        for i in range(n):
+            agents.send(i, {"type": "stop"})
+        for i in range(n):
+            stats = agents.recv(i, 10.0, "stats")
+            for key, value in stats.items():
+                if key not in ("type", "agent"):
+                    network[key] = network.get(key, 0) + int(value)
+        return DeployResult(outcomes, network, startup, time.monotonic() - began)
+    finally:
+        agents.close()

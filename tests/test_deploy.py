@@ -1,0 +1,140 @@
+"""`bitcomm deploy`: agents as processes over UDP on loopback reproduce the simulator without drops,
+do worse with 30% of datagrams dropped, and no process outlives the run."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.deploy import DeployError, episode_set, place_episode, run_deploy
+from bitcomm.deploy import world as world_module
+from bitcomm.deploy.protocol import pack_datagram, task_from_dict, task_to_dict, unpack_datagram
+from bitcomm.envs.core import GoalExchangeCore
+from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.evaluation import run_first_episodes
+from bitcomm.policies import OraclePolicy
+from bitcomm.policy_source import PolicySource
+
+TINY = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
+ORACLE = PolicySource("oracle")
+EVAL_KEYS = {"episodes", "mean_episode_length", "ci95", "mean_team_return", "success_rate"}
+
+
+def test_wire_format_round_trips() -> None:
+    bits = np.array([1, 0, 1, 1, 0, 0, 0, 1, 1], dtype=np.uint8)
+    d = unpack_datagram(pack_datagram(77, 3, 12, 5, 40, bits))
+    assert d is not None and (d.run_id, d.sender, d.episode, d.step, d.seq) == (77, 3, 12, 5, 40)
+    np.testing.assert_array_equal(d.bits, bits)
+    assert unpack_datagram(b"junk") is None and unpack_datagram(b"XXXX" + bytes(30)) is None
+    task = TaskConfig(EnvConfig(n_agents=3, observes=(2, 0, 1)), ChannelConfig(recipients=((2, 1), (0,), (1,))))
+    assert task_from_dict(json.loads(json.dumps(task_to_dict(task)))) == task
+
+
+@pytest.mark.parametrize("task", [TINY, TaskConfig(EnvConfig(size=5, n_agents=3, observes=(2, 0, 1)))])
+def test_placed_episode_is_the_evaluators_episode(task: TaskConfig) -> None:
+    starts, goals = episode_set(task, 20, seed=3)
+    env = VecGoalExchange(task, 20, seed=np.random.SeedSequence(3).spawn(1)[0])
+    core = GoalExchangeCore(task.env, 1, seed=0)
+    for e in range(20):
+        place_episode(core, starts[e], goals[e])
+        np.testing.assert_array_equal(core.obs[0], env.core.obs[e])
+        np.testing.assert_array_equal(core.state[0], env.core.state[e])
+        assert core.t[0] == 0
+
+
+def test_deploy_reproduces_the_simulator_without_drops() -> None:
+    result = run_deploy(ORACLE, TINY, 60, seed=1, deadline_ms=50, timeout_s=60)
+    lengths, _, _ = run_first_episodes(OraclePolicy(TINY), TINY, 60, 1)
+    # the oracle is deterministic and no datagram is lost: the very same episodes, step for step
+    assert [o.length for o in result.outcomes] == lengths.tolist()
+    lo, hi = result.summary.ci95
+    assert lo <= float(np.mean(lengths)) <= hi and result.summary.success_rate == 1.0
+    assert result.network["missing"] == 0 and result.network["dropped"] == 0 and result.network["sent"] > 0
+
+
+def test_dropped_datagrams_make_it_worse() -> None:
+    lossy = TaskConfig(TINY.env, ChannelConfig(bits=4, drop_prob=0.3))
+    result = run_deploy(ORACLE, lossy, 60, seed=1, deadline_ms=5, timeout_s=60)
+    clean, _, _ = run_first_episodes(OraclePolicy(TINY), TINY, 60, 1)
+    net = result.network
+    assert result.summary.mean_episode_length > float(np.mean(clean))
+    assert 0.2 < net["dropped"] / (net["sent"] + net["dropped"]) < 0.4
+    assert net["missing"] > 0
+
+
+def test_actuation_noise_is_applied_by_the_world() -> None:
+    shaky = TaskConfig(EnvConfig(size=4, act_fail_prob=0.4, act_delay=1), TINY.channel)
+    result = run_deploy(ORACLE, shaky, 40, seed=2, deadline_ms=50, timeout_s=60)
+    clean, _, _ = run_first_episodes(OraclePolicy(TINY), TINY, 40, 2)
+    assert result.summary.mean_episode_length > float(np.mean(clean)) + 1.0
+
+
+def test_cli_json_has_the_evaluators_keys() -> None:
+    cmd = [sys.executable, "-m", "bitcomm.cli", "deploy", "--policy", "oracle", "--size", "4", "--bits", "4",
+           "--episodes", "20", "--seed", "4", "--json", "--timeout", "60"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout)
+    assert EVAL_KEYS <= set(out) and EVAL_KEYS <= set(out["simulator"])
+    assert out["mean_episode_length"] == out["simulator"]["mean_episode_length"]
+    assert done.stderr.count("episode ") == 20
+
+
+def test_an_agent_dying_ends_the_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    procs: list[subprocess.Popen[bytes]] = []
+    real_popen = subprocess.Popen
+
+    def recording_popen(*args: object, **kwargs: object) -> subprocess.Popen[bytes]:
+        proc = real_popen(*args, **kwargs)  # type: ignore[call-overload]
+        procs.append(proc)
+        return proc  # type: ignore[no-any-return]
+
+    monkeypatch.setattr(world_module.subprocess, "Popen", recording_popen)
+    began = time.monotonic()
+    with pytest.raises(DeployError, match="agent 1"):
+        run_deploy(ORACLE, TINY, 10_000, seed=0, timeout_s=60, on_episode=lambda o: o.index == 2 and procs[1].kill())
+    assert time.monotonic() - began < 30
+    assert len(procs) == 2 and all(p.poll() is not None for p in procs)
+
+
+def _children(pid: int) -> list[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(x) for x in path.read_text().split()] if path.exists() else []
+
+
+def _running(pid: int) -> bool:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+    return "\nState:\tZ" not in status
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc to find the agents")
+def test_agents_end_when_the_world_dies() -> None:
+    cmd = [sys.executable, "-m", "bitcomm.cli", "deploy", "--size", "4", "--bits", "4", "--episodes", "100000",
+           "--timeout", "120"]  # fmt: skip
+    world = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert world.stdout is not None
+        assert world.stdout.readline().startswith("episode 0:")
+        agents = _children(world.pid)
+        assert len(agents) == 2
+        os.kill(world.pid, signal.SIGKILL)
+        world.wait()
+        deadline = time.monotonic() + 10
+        while any(_running(a) for a in agents) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not any(_running(a) for a in agents)
+    finally:
+        if world.poll() is None:
+            world.kill()
