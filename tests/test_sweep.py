@@ -1,0 +1,53 @@
+"""`bitcomm sweep`: one evaluation per (policy, parameter, value), CSV and PNG, noise costs steps."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from bitcomm.cli import main
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError
+from bitcomm.policy_source import PolicySource
+from bitcomm.sweep import parse_param, run_sweep, with_param
+
+TINY = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
+
+
+def test_parse_param() -> None:
+    assert parse_param("act-fail-prob=0,0.1") == ("act_fail_prob", (0.0, 0.1))
+    assert parse_param("act_delay=0,2") == ("act_delay", (0, 2))
+    for bad in ("act_delay=0.5", "speed=1", "flip_prob", "flip_prob=x", "drop_prob="):
+        with pytest.raises(ConfigError):
+            parse_param(bad)
+    assert with_param(TINY, "delay", 3).channel.delay == 3
+    with pytest.raises(ConfigError):
+        with_param(TINY, "flip_prob", 1.5)
+
+
+def test_noise_costs_steps_and_zero_noise_is_the_base_task() -> None:
+    params = {"act_fail_prob": (0.0, 0.4), "drop_prob": (0.0, 0.4), "flip_prob": (0.0, 0.2)}
+    points = run_sweep([PolicySource("oracle")], TINY, params, episodes=200, seed=0)
+    by = {(p.param, p.value): p.result for p in points}
+    base = by[("act_fail_prob", 0.0)]
+    assert by[("drop_prob", 0.0)] == base == by[("flip_prob", 0.0)]  # same episode set at every point
+    for name in params:
+        assert by[(name, params[name][1])].mean_episode_length > base.mean_episode_length
+
+
+def test_cli_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "sw"
+    argv = ["sweep", "--policy", "oracle", "--policy", "random", "--size", "4", "--bits", "4", "--max-steps", "40",
+            "--episodes", "50", "--param", "act_fail_prob=0,0.2", "--param", "act_delay=0,1,2"]  # fmt: skip
+    assert main([*argv, "--out", str(out)]) == 0
+    with (out / "sweep.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 * (2 + 3)
+    assert {r["policy"] for r in rows} == {"oracle", "random"}
+    assert all(float(r["ci95_low"]) <= float(r["mean_episode_length"]) <= float(r["ci95_high"]) for r in rows)
+    assert (out / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "wrote" in capsys.readouterr().out
+    assert main(["sweep", "--param", "speed=1", "--out", str(out)]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
