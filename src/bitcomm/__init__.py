@@ -1,0 +1,33 @@
+"""bitcomm: multi-agent reinforcement learning with learned discrete, noisy communication.
+
+The public names load lazily, so `import bitcomm` (and the CLI) start without importing torch.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+
+if TYPE_CHECKING:
+    from bitcomm.controller import Controller
+    from bitcomm.evaluation import evaluate
+
+try:
+    from importlib.metadata import PackageNotFoundError, version
+
+    __version__ = version("bitcomm")
+except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "0.0.0"
+
+__all__ = ["ChannelConfig", "Controller", "EnvConfig", "TaskConfig", "evaluate", "__version__"]
+
+_LAZY = {"Controller": "bitcomm.controller", "evaluate": "bitcomm.evaluation"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'bitcomm' has no attribute {name!r}")

@@ -1,0 +1,95 @@
+"""`Controller`: a trained policy for deployment, numpy in and numpy out, no training code needed.
+
+    controller = bitcomm.Controller.load("runs/default")        # a run folder or a .safetensors file
+    move, bits = controller.act(planes, received_bits)          # one agent: (2, S, S), (slots, K)
+    moves, bits = controller.act(planes_batch, received_batch)  # N agents: (N, 2, S, S), (N, slots, K)
+
+It acts through `bitcomm.agent.act`, the function training rollouts and evaluation use, so what is
+trained, measured and deployed cannot drift apart. Sampling is the default (how the policy was
+trained); `greedy=True` takes the most likely move and message.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bitcomm.agent import act
+from bitcomm.checkpoint import load_weights
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError
+from bitcomm.networks import ModelConfig, PolicyNet
+
+
+def task_from_dict(d: dict[str, Any]) -> TaskConfig:
+    return TaskConfig(EnvConfig(**d["env"]), ChannelConfig(**d["channel"]))
+
+
+def model_from_dict(d: dict[str, Any]) -> ModelConfig:
+    names = {f.name for f in dataclasses.fields(ModelConfig)}
+    values = {k: v for k, v in d.items() if k in names}
+    if "conv_channels" in values:
+        values["conv_channels"] = tuple(values["conv_channels"])
+    return ModelConfig(**values)
+
+
+class Controller:
+    """One shared policy network, acting for any agent of the task it was trained on."""
+
+    def __init__(self, policy: PolicyNet, config: dict[str, Any], seed: int = 0, info: dict[str, Any] | None = None):
+        self.policy = policy.eval()
+        self.config = config
+        """The training config as saved with the checkpoint (`TrainConfig.to_dict()`)."""
+        self.info = info or {}
+        """Checkpoint facts: path, episodes and batches trained."""
+        self.generator = torch.Generator().manual_seed(seed)
+
+    @property
+    def task(self) -> TaskConfig:
+        return self.policy.task
+
+    @classmethod
+    def load(cls, path: str | Path, seed: int = 0) -> Controller:
+        """From a run folder (its latest checkpoint) or a checkpoint file; `seed` drives sampling."""
+        weights, info = load_weights(path)
+        config = info["config"]
+        try:
+            net = PolicyNet(task_from_dict(config["task"]), model_from_dict(config["model"]))
+            net.load_state_dict(weights["policy"])
+        except (KeyError, TypeError, RuntimeError) as err:
+            raise ConfigError(
+                f"invalid checkpoint={str(path)!r}: weights do not fit its config ({type(err).__name__}: {err})"
+            ) from None
+        return cls(net, config, seed, {k: v for k, v in info.items() if k != "config"})
+
+    def act(
+        self,
+        planes: np.ndarray,
+        received_bits: np.ndarray,
+        greedy: bool = False,
+        generator: torch.Generator | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`(move, message_bits)`: int64 `()` and uint8 `(K,)` for one agent, `(N,)` and `(N, K)` for a batch."""
+        planes, received = np.asarray(planes), np.asarray(received_bits)
+        single = planes.ndim == 3
+        if single:
+            planes, received = planes[None], received[None]
+        S, K, slots = self.task.env.size, self.task.channel.bits, self.task.slots
+        if planes.shape[1:] != (2, S, S) or received.shape[1:] != (slots, K) or planes.shape[0] != received.shape[0]:
+            raise ConfigError(
+                f"invalid input shapes planes={planes.shape}, received_bits={received.shape}: "
+                f"expected (N, 2, {S}, {S}) and (N, {slots}, {K}) (or without N for one agent)"
+            )
+        moves, bits, _, _ = act(
+            self.policy,
+            torch.from_numpy(np.ascontiguousarray(planes, dtype=np.uint8)),
+            torch.from_numpy(np.ascontiguousarray(received, dtype=np.uint8)),
+            greedy=greedy,
+            generator=generator or self.generator,
+        )
+        m, b = moves.numpy().astype(np.int64), bits.numpy().astype(np.uint8)
+        return (m[0], b[0]) if single else (m, b)

@@ -1,0 +1,304 @@
+"""A training run: the loop, its log, its checkpoints and its plot, in one folder.
+
+    <out>/config.json          TrainConfig + seed, library versions, git commit, command line
+    <out>/metrics.csv          one row per batch (flat namespaced keys), the source of every plot
+    <out>/tb/                  the same rows for TensorBoard
+    <out>/learning_curve.png   mean episode length against episodes, from metrics.csv
+    <out>/checkpoints/         see bitcomm.checkpoint
+
+`sync` mode: batch k plays `num_envs` whole episodes seeded by `SeedSequence(seed, spawn_key=(k,))`
+and makes one learner update; the weights are initialised under `torch.manual_seed(seed)` and all
+sampling and minibatch order come from one generator seeded with `seed`, whose state is checkpointed.
+So a run is reproducible bit for bit on one machine, and a resumed run continues exactly as if it
+had never stopped.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import platform
+import subprocess
+import sys
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_state, load_weights, resolve, save_checkpoint
+from bitcomm.errors import ConfigError
+from bitcomm.train.config import TrainConfig
+
+ROLLING = 1000
+"""Episodes in the rolling mean of the progress bar, the log and the plot."""
+LEARNING_COLUMNS = ("batch", "episodes", "agent_steps")
+"""Columns besides the learner's and the charts; `wall_s` is the only one that is not reproducible."""
+
+
+# ---------------------------------------------------------------------------------------------- record
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, cwd=Path(__file__).parent
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None if out.returncode == 0 else None
+
+
+def _versions() -> dict[str, str]:
+    from bitcomm import __version__
+
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "bitcomm": __version__,
+    }
+
+
+def oracle_level(cfg: TrainConfig, episodes: int = 2000) -> float | None:
+    """The oracle's mean episode length on the task (None where the oracle cannot play it)."""
+    from bitcomm.evaluation import evaluate
+    from bitcomm.policies import OraclePolicy
+
+    try:
+        return evaluate(OraclePolicy(cfg.task), cfg.task, episodes, seed=cfg.seed).mean_episode_length
+    except ConfigError:
+        return None
+
+
+def write_config(cfg: TrainConfig, out: Path, extra: dict[str, Any]) -> None:
+    record = {
+        **cfg.to_dict(),
+        "seed": cfg.seed,
+        "versions": _versions(),
+        "git_commit": _git_commit(),
+        "command": sys.argv,
+        **extra,
+    }
+    tmp = out / ".config.json.tmp"
+    tmp.write_text(json.dumps(record, indent=2) + "\n")
+    tmp.replace(out / "config.json")
+
+
+class Logger:
+    """One row per batch, to metrics.csv and TensorBoard alike (x axis: episodes)."""
+
+    def __init__(self, out: Path, resume_batches: int | None) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.path = out / "metrics.csv"
+        self.columns: list[str] | None = None
+        if resume_batches is not None and self.path.is_file():
+            with self.path.open(newline="") as f:
+                rows = [r for r in csv.DictReader(f) if int(r["batch"]) <= resume_batches]
+            if rows:
+                self.columns = list(rows[0])
+            with self.path.open("w", newline="") as f:  # drop rows past the checkpoint
+                if self.columns:
+                    w = csv.DictWriter(f, self.columns)
+                    w.writeheader()
+                    w.writerows(rows)
+        elif self.path.exists():
+            self.path.unlink()
+        self.file = self.path.open("a", newline="")
+        self.tb = SummaryWriter(str(out / "tb"), purge_step=None)
+
+    def log(self, row: dict[str, float]) -> None:
+        if self.columns is None:
+            self.columns = list(row)
+            csv.DictWriter(self.file, self.columns).writeheader()
+        csv.DictWriter(self.file, self.columns, extrasaction="ignore").writerow(row)
+        self.file.flush()
+        step = int(row["episodes"])
+        for key, value in row.items():
+            if "/" in key:
+                self.tb.add_scalar(key, value, step)
+
+    def close(self) -> None:
+        self.file.close()
+        self.tb.close()
+
+
+def plot_learning_curve(out: Path) -> Path:
+    """learning_curve.png from metrics.csv (and the oracle's level from config.json)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with (out / "metrics.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    config = json.loads((out / "config.json").read_text())
+    fig, ax = plt.subplots(figsize=(7, 4))
+    if rows:
+        x = np.array([float(r["episodes"]) for r in rows])
+        batch = [float(r["charts/episode_length"]) for r in rows]
+        rolling = [float(r["charts/episode_length_rolling"]) for r in rows]
+        ax.plot(x, batch, color="C0", alpha=0.25, lw=0.8, label="batch mean")
+        ax.plot(x, rolling, color="C0", label=f"last {ROLLING} episodes")
+    if config.get("oracle_mean_episode_length") is not None:
+        ax.axhline(config["oracle_mean_episode_length"], color="k", ls="--", lw=1, label="oracle")
+    ax.set_xlabel("episodes")
+    ax.set_ylabel("mean episode length")
+    messages = config.get("model", {}).get("messages")
+    ax.set_title(f"{config.get('estimator')} + {messages} ({config.get('recipe')}), seed {config.get('seed')}")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    path = out / "learning_curve.png"
+    tmp = out / ".learning_curve.tmp.png"
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------- state
+class Progress:
+    """Counters that a checkpoint carries."""
+
+    def __init__(self) -> None:
+        self.episodes = self.batches = self.agent_steps = 0
+        self.wall_s = 0.0
+        self.recent: deque[int] = deque(maxlen=ROLLING)
+        self.recent_return: deque[float] = deque(maxlen=ROLLING)
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "agent_steps": self.agent_steps,
+            "wall_s": self.wall_s,
+            "recent_lengths": torch.tensor(list(self.recent), dtype=torch.int64),
+            "recent_returns": torch.tensor(list(self.recent_return), dtype=torch.float64),
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.episodes, self.batches = int(state["episodes"]), int(state["batches"])
+        self.agent_steps, self.wall_s = int(state["agent_steps"]), float(state["wall_s"])
+        self.recent.extend(int(x) for x in state["recent_lengths"].tolist())
+        self.recent_return.extend(float(x) for x in state["recent_returns"].tolist())
+
+
+def checkpoint_weights(learner: Any) -> dict[str, dict[str, torch.Tensor]]:
+    return {"policy": learner.policy.state_dict(), "critic": learner.critic.state_dict()}
+
+
+def resume_config(out: Path, episodes: int | None = None) -> TrainConfig:
+    """The TrainConfig of the run in `out`, with a new budget if one is given."""
+    _, info = load_weights(out)
+    d = dict(info["config"])
+    if episodes is not None:
+        d["episodes"] = episodes
+    return TrainConfig.from_dict(d)
+
+
+def has_checkpoint(out: Path) -> bool:
+    return (out / CHECKPOINTS / LATEST).is_file()
+
+
+# ---------------------------------------------------------------------------------------------- loop
+def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
+    """Train in `cfg.mode` until `cfg.episodes` episodes are played; returns the latest checkpoint."""
+    out = Path(out)
+    if cfg.mode == "a3c":
+        from bitcomm.train.a3c import train_a3c
+
+        return train_a3c(cfg, out, resume=resume, progress=progress)
+    return train_sync(cfg, out, resume=resume, progress=progress)
+
+
+def _prepare(cfg: TrainConfig, out: Path, resume: bool) -> dict[str, Any] | None:
+    """Check the folder; on resume return the checkpoint's state (with its weights), else None."""
+    if not resume:
+        if has_checkpoint(out):
+            raise ConfigError(f"invalid out={str(out)!r}: it already holds a run (use --resume, or another --out)")
+        out.mkdir(parents=True, exist_ok=True)
+        return None
+    if not has_checkpoint(out):
+        raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
+    weights, info = load_weights(out)
+    state = load_state(resolve(out))
+    return {**state, "weights": weights, "info": info}
+
+
+def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
+    from tqdm import tqdm
+
+    from bitcomm.rollout import Collector
+    from bitcomm.train.learner import Learner
+
+    saved = _prepare(cfg, out, resume)
+    torch.manual_seed(cfg.seed)
+    learner = Learner(cfg)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    collector = Collector(cfg.task, cfg.num_envs)
+    prog = Progress()
+    if saved is not None:
+        learner.policy.load_state_dict(saved["weights"]["policy"])
+        learner.critic.load_state_dict(saved["weights"]["critic"])
+        learner.opt_policy.load_state_dict(saved["opt_policy"])
+        learner.opt_critic.load_state_dict(saved["opt_critic"])
+        generator.set_state(saved["generator"])
+        prog.restore(saved)
+        config_extra = {
+            k: v for k, v in json.loads((out / "config.json").read_text()).items() if k == "oracle_mean_episode_length"
+        }
+    else:
+        config_extra = {"oracle_mean_episode_length": oracle_level(cfg)}
+    write_config(cfg, out, config_extra)
+    logger = Logger(out, prog.batches if saved is not None else None)
+    n = cfg.task.env.n_agents
+
+    def save() -> Path:
+        state = {
+            **prog.state(),
+            "opt_policy": learner.opt_policy.state_dict(),
+            "opt_critic": learner.opt_critic.state_dict(),
+            "generator": generator.get_state(),
+        }
+        path = save_checkpoint(out, cfg.to_dict(), checkpoint_weights(learner), prog.episodes, prog.batches, state)
+        plot_learning_curve(out)
+        return path
+
+    bar = tqdm(total=cfg.episodes, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
+    last_save = time.monotonic()
+    path = None
+    try:
+        while prog.episodes < cfg.episodes:
+            t0 = time.perf_counter()
+            # rollout: batch k's episodes are fixed by (seed, k)
+            seed = np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,))
+            ro = collector.collect(learner.policy, seed, generator)
+            # update
+            stats = learner.update(ro, generator)
+            prog.wall_s += time.perf_counter() - t0
+            prog.batches += 1
+            prog.episodes += len(ro.length)
+            prog.agent_steps += int(ro.length.sum()) * n
+            prog.recent.extend(int(x) for x in ro.length)
+            prog.recent_return.extend(float(x) for x in ro.team_return)
+            row = {
+                "batch": prog.batches,
+                "episodes": prog.episodes,
+                "agent_steps": prog.agent_steps,
+                "wall_s": round(prog.wall_s, 3),
+                "charts/episode_length": float(ro.length.mean()),
+                "charts/episode_length_rolling": float(np.mean(prog.recent)),
+                "charts/team_return": float(ro.team_return.mean()),
+                "charts/success": float(ro.success.mean()),
+                **stats,
+            }
+            logger.log(row)
+            bar.update(len(ro.length))
+            bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")
+            if time.monotonic() - last_save >= cfg.checkpoint_seconds and prog.episodes < cfg.episodes:
+                save()
+                last_save = time.monotonic()
+        path = save()
+    finally:
+        bar.close()
+        logger.close()
+    return path
