@@ -90,7 +90,9 @@ class ChannelConfig:
         if not isinstance(self.bits, int) or not 1 <= self.bits <= 30:
             raise bad_value("bits", self.bits, "must be an integer in [1, 30]")
         if not isinstance(self.delay, int) or self.delay < 1:
-            raise bad_value("delay", self.delay, "must be an integer >= 1 (a message arrives one step later at the earliest)")
+            raise bad_value(
+                "delay", self.delay, "must be an integer >= 1 (a message arrives one step later at the earliest)"
+            )
         _check_probability("flip_prob", self.flip_prob)
         _check_probability("drop_prob", self.drop_prob)
         if self.recipients is not None:
@@ -160,5 +162,7 @@ class TaskConfig:
         need = math.ceil(math.log2(self.env.cells))
         if self.channel.bits < need:
             raise bad_value(
-                "bits", self.channel.bits, f"the oracle needs at least {need} bits to name one of {self.env.cells} cells"
+                "bits",
+                self.channel.bits,
+                f"the oracle needs at least {need} bits to name one of {self.env.cells} cells",
             )

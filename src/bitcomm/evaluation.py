@@ -9,12 +9,15 @@ would favour short ones.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from bitcomm.config import TaskConfig
-from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.envs.core import StepResult
+from bitcomm.envs.vec import Observation, VecGoalExchange
 from bitcomm.errors import bad_value
 from bitcomm.policies import Policy
 
@@ -42,6 +45,28 @@ class EvalResult:
         return cls(n, mean, (mean - half, mean + half), float(np.mean(returns)), float(np.mean(success)))
 
 
+class FirstEpisodeStep(NamedTuple):
+    """One step of the B first episodes: what was seen and done, and what came of it."""
+
+    obs: Observation  # before the step (live buffers: copy what you keep)
+    moves: np.ndarray
+    bits: np.ndarray
+    result: StepResult
+    dropped: np.ndarray
+    active: np.ndarray  # (B,) bool, the slot was still in its first episode at this step
+
+
+def play_first_episodes(env: VecGoalExchange, policy: Policy) -> Iterator[FirstEpisodeStep]:
+    """Step `env` with `policy` until every slot's first episode has ended (later ones are ignored)."""
+    active = np.ones(env.num_envs, dtype=bool)
+    while active.any():
+        obs = env.observe()
+        moves, bits = policy(obs)
+        result, dropped = env.step(moves, bits)
+        yield FirstEpisodeStep(obs, moves, bits, result, dropped, active.copy())
+        active[result.finished.index] = False
+
+
 def run_first_episodes(
     policy: Policy, task: TaskConfig, episodes: int, seed: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -52,19 +77,12 @@ def run_first_episodes(
     chunks = math.ceil(episodes / EVAL_CHUNK)
     for c, chunk_seed in enumerate(np.random.SeedSequence(seed).spawn(chunks)):
         lo = c * EVAL_CHUNK
-        b = min(EVAL_CHUNK, episodes - lo)
-        env = VecGoalExchange(task, b, seed=chunk_seed)
-        pending = np.ones(b, dtype=bool)
-        while pending.any():
-            moves, bits = policy(env.observe())
-            result, _ = env.step(moves, bits)
-            fin = result.finished
-            first = pending[fin.index]
-            idx = fin.index[first]
-            lengths[lo + idx] = fin.length[first]
-            returns[lo + idx] = fin.team_return[first]
-            success[lo + idx] = fin.success[first]
-            pending[idx] = False
+        env = VecGoalExchange(task, min(EVAL_CHUNK, episodes - lo), seed=chunk_seed)
+        for step in play_first_episodes(env, policy):
+            fin = step.result.finished
+            first = step.active[fin.index]
+            idx = lo + fin.index[first]
+            lengths[idx], returns[idx], success[idx] = fin.length[first], fin.team_return[first], fin.success[first]
     return lengths, returns, success
 
 

@@ -44,7 +44,11 @@ class OraclePolicy:
         for x in range(env.n_agents):
             slots = [k for k, j in enumerate(senders[x]) if j >= 0 and env.observed[j] == x]
             if not slots:
-                raise bad_value("recipients", task.recipient_lists, f"the oracle needs agent {x} to hear an agent that sees its goal")
+                raise bad_value(
+                    "recipients",
+                    task.recipient_lists,
+                    f"the oracle needs agent {x} to hear an agent that sees its goal",
+                )
             self.goal_slot[x] = slots[0]
 
     def __call__(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:

@@ -29,14 +29,21 @@ def add_task_flags(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--size", type=int, default=env.size, help="grid side (default %(default)s)")
     g.add_argument("--agents", type=int, default=env.n_agents, help="number of agents (default %(default)s)")
     g.add_argument("--max-steps", type=int, default=env.max_steps, help="truncation length (default %(default)s)")
-    g.add_argument("--observes", type=_int_list, default=None, help="whose goal each agent sees, e.g. 1,0 (default: ring)")
+    g.add_argument(
+        "--observes", type=_int_list, default=None, help="whose goal each agent sees, e.g. 1,0 (default: ring)"
+    )
     g.add_argument("--bits", type=int, default=ch.bits, help="message bits K (default %(default)s)")
     g.add_argument(
-        "--recipients", type=_groups, default=None, help="who hears each agent, e.g. '1,2;0;0' (default: whose goal it sees)"
+        "--recipients",
+        type=_groups,
+        default=None,
+        help="who hears each agent, e.g. '1,2;0;0' (default: whose goal it sees)",
     )
     g.add_argument("--delay", type=int, default=ch.delay, help="message delay in steps (default %(default)s)")
     g.add_argument("--flip-prob", type=float, default=ch.flip_prob, help="bit flip probability (default %(default)s)")
-    g.add_argument("--drop-prob", type=float, default=ch.drop_prob, help="message drop probability (default %(default)s)")
+    g.add_argument(
+        "--drop-prob", type=float, default=ch.drop_prob, help="message drop probability (default %(default)s)"
+    )
     g.add_argument("--act-fail-prob", type=float, default=env.act_fail_prob, help="actuation: move not executed")
     g.add_argument("--act-delay", type=int, default=env.act_delay, help="actuation: steps before a move takes effect")
 

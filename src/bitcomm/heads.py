@@ -1,0 +1,112 @@
+"""Message heads: how a policy parameterizes the K-bit message it sends (paper III-A).
+
+Both heads send K bits over the channel, so they are comparable; they differ in what the network
+outputs and in how a receiver reads the bits (SPEC section 2):
+
+- `bitwise`: K independent Bernoulli bits, K outputs; the receiver reads K floats in {0, 1}.
+- `onehot`: one categorical over all 2^K messages, 2^K outputs; the receiver reads a one-hot 2^K vector.
+
+A new head touches this file only: the policy never asks which head it has.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from bitcomm.envs.channel import bits_to_index, index_to_bits
+from bitcomm.errors import bad_value
+
+
+class BitwiseHead:
+    """K independent Bernoulli bits: log P(m) = sum_k log P(bit_k)."""
+
+    name = "bitwise"
+
+    def __init__(self, bits: int) -> None:
+        self.bits = bits
+        self.out_features = bits  # one logit per bit
+        self.in_features = bits  # a receiver reads the bits themselves
+
+    def encode(self, bits: torch.Tensor) -> torch.Tensor:
+        return bits.float()
+
+    def log_prob(self, logits: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
+        return -F.binary_cross_entropy_with_logits(logits, bits.float(), reduction="none").sum(-1)
+
+    def entropy(self, logits: torch.Tensor) -> torch.Tensor:
+        p = torch.sigmoid(logits)
+        return F.binary_cross_entropy_with_logits(logits, p, reduction="none").sum(-1)
+
+    def sample(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        u = torch.rand(logits.shape, generator=generator, device=logits.device)
+        return (u < torch.sigmoid(logits)).to(torch.uint8)
+
+    def mode(self, logits: torch.Tensor) -> torch.Tensor:
+        return (logits > 0).to(torch.uint8)
+
+    def straight_through(self, logits: torch.Tensor, received: torch.Tensor, flips: torch.Tensor) -> torch.Tensor:
+        """The received encoding, equal in value to `encode(received)`, with the gradient of the
+        sender's bit probabilities (sign reversed where the channel flipped the bit)."""
+        p = torch.sigmoid(logits)
+        sign = 1.0 - 2.0 * flips.float()
+        return received.float() + sign * (p - p.detach())
+
+    def relaxed(self, logits: torch.Tensor, flips: torch.Tensor, noise: float) -> torch.Tensor:
+        """A differentiable stand-in for the received bits: sigmoid(logit + noise * N(0, 1)), flipped
+        where the channel flipped (DIAL's regularised channel). The noise pushes bits to saturate."""
+        q = torch.sigmoid(logits + noise * torch.randn_like(logits))
+        return torch.where(flips.bool(), 1.0 - q, q)
+
+
+class OneHotHead:
+    """One categorical over the 2^K messages, sent as the K bits of the message index."""
+
+    name = "onehot"
+
+    def __init__(self, bits: int) -> None:
+        self.bits = bits
+        self.out_features = 1 << bits
+        self.in_features = 1 << bits
+
+    def encode(self, bits: torch.Tensor) -> torch.Tensor:
+        return F.one_hot(bits_to_index(bits), self.out_features).float()
+
+    def log_prob(self, logits: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
+        return torch.log_softmax(logits, -1).gather(-1, bits_to_index(bits)[..., None])[..., 0]
+
+    def entropy(self, logits: torch.Tensor) -> torch.Tensor:
+        logp = torch.log_softmax(logits, -1)
+        return -(logp.exp() * logp).sum(-1)
+
+    def sample(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        probs = torch.softmax(logits.reshape(-1, self.out_features), -1)
+        index = torch.multinomial(probs, 1, generator=generator)[:, 0].reshape(logits.shape[:-1])
+        return index_to_bits(index, self.bits)
+
+    def mode(self, logits: torch.Tensor) -> torch.Tensor:
+        return index_to_bits(logits.argmax(-1), self.bits)
+
+    def straight_through(self, logits: torch.Tensor, received: torch.Tensor, flips: torch.Tensor) -> torch.Tensor:
+        """One-hot of what arrived, with the gradient of the probability of each message that the
+        channel's flip pattern would turn into it (message index XOR flip pattern)."""
+        p = torch.softmax(logits, -1)
+        perm = torch.arange(self.out_features, device=logits.device) ^ bits_to_index(flips)[..., None]
+        p_seen = p.gather(-1, perm)
+        return self.encode(received) + (p_seen - p_seen.detach())
+
+    def relaxed(self, logits: torch.Tensor, flips: torch.Tensor, noise: float) -> torch.Tensor:
+        """softmax(logits + noise * N(0, 1)), permuted by the channel's flip pattern."""
+        q = torch.softmax(logits + noise * torch.randn_like(logits), -1)
+        perm = torch.arange(self.out_features, device=logits.device) ^ bits_to_index(flips)[..., None]
+        return q.gather(-1, perm)
+
+
+MessageHead = BitwiseHead | OneHotHead
+MESSAGE_HEADS = {"bitwise": BitwiseHead, "onehot": OneHotHead}
+
+
+def make_head(name: str, bits: int) -> MessageHead:
+    if name not in MESSAGE_HEADS:
+        raise bad_value("messages", name, f"choose one of {', '.join(MESSAGE_HEADS)}")
+    return MESSAGE_HEADS[name](bits)

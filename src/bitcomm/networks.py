@@ -1,0 +1,149 @@
+"""Policy and critic networks (SPEC section 3, paper Fig. 2).
+
+Policy: observation planes -> convolutions; received message -> one fully connected layer; the two
+concatenated -> two fully connected layers -> move logits and message logits. One set of
+parameters serves every agent. Critics see the full state, centred on the agent they judge
+(its own position and goal first), plus the other agents' actions, each with a "given" flag so one
+network answers with any subset of them masked (SPEC section 4, several recipients).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from bitcomm.config import TaskConfig
+from bitcomm.envs.core import N_MOVES
+from bitcomm.heads import MessageHead, make_head
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Network sizes; defaults are small enough for a laptop CPU to train in minutes."""
+
+    messages: str = "bitwise"
+    """Message head: `bitwise` (K Bernoulli bits) or `onehot` (categorical over 2^K)."""
+    conv_channels: tuple[int, ...] = (8, 16)
+    """Channels of the 3x3 convolutions, each of stride 2: one-hot planes lose nothing to striding
+    (a kernel tells the offsets apart) and the updates stay cheap on a CPU."""
+    message_hidden: int = 64
+    """Width of the fully connected layer over the received message (and the critics' extra inputs)."""
+    hidden: int = 128
+    """Width of the two fully connected layers after the concatenation."""
+    coords: bool = False
+    """Add row and column coordinate planes to the observation (CoordConv), so that comparing a
+    decoded goal with one's own position is a linear read-out rather than a lookup."""
+
+
+def _conv_stack(in_channels: int, channels: tuple[int, ...], size: int) -> tuple[nn.Sequential, int]:
+    layers: list[nn.Module] = []
+    c, s = in_channels, size
+    for out in channels:
+        layers += [nn.Conv2d(c, out, 3, stride=2, padding=1), nn.ReLU()]
+        c, s = out, (s - 1) // 2 + 1
+    return nn.Sequential(*layers, nn.Flatten()), c * s * s
+
+
+def _coord_planes(size: int) -> torch.Tensor:
+    r = torch.linspace(-1.0, 1.0, size)
+    return torch.stack([r[:, None].expand(size, size), r[None, :].expand(size, size)])
+
+
+class PolicyNet(nn.Module):
+    """pi(a | o, m_rec) and Pm(m | o, m_rec), sampled independently (paper IV)."""
+
+    def __init__(self, task: TaskConfig, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.task, self.cfg = task, cfg
+        self.head: MessageHead = make_head(cfg.messages, task.channel.bits)
+        size = task.env.size
+        self.register_buffer("coords", _coord_planes(size), persistent=False)
+        self.conv, flat = _conv_stack(2 + 2 * cfg.coords, cfg.conv_channels, size)
+        self.message_in = nn.Sequential(nn.Linear(task.slots * self.head.in_features, cfg.message_hidden), nn.ReLU())
+        self.fc1 = nn.Sequential(nn.Linear(flat + cfg.message_hidden, cfg.hidden), nn.ReLU())
+        self.fc2 = nn.Sequential(nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU())
+        self.move_logits = nn.Linear(cfg.hidden, N_MOVES)
+        self.message_logits = nn.Linear(cfg.hidden, self.head.out_features)
+        # training-time read-out of the agent's own goal (row and column) from its first hidden layer;
+        # used only by the optional goal-grounding loss, never by acting
+        self.goal_logits = nn.Linear(cfg.hidden, 2 * size)
+        # training-time read-out of the goal the agent observes (the one it should tell), for the
+        # optional sender-grounding loss
+        self.seen_logits = nn.Linear(cfg.hidden, 2 * size)
+
+    def observation_features(self, planes: torch.Tensor) -> torch.Tensor:
+        """`(N, 2, S, S)` planes (any dtype) -> `(N, flat)` features."""
+        x = planes.float()
+        if self.cfg.coords:
+            x = torch.cat([x, self.coords.expand(x.shape[0], -1, -1, -1)], 1)
+        return self.conv(x)
+
+    def encode_received(self, received: torch.Tensor) -> torch.Tensor:
+        """`(N, slots, K)` bits -> `(N, slots * in_features)` as this head's receiver reads them."""
+        return self.head.encode(received).flatten(1)
+
+    def trunk(self, obs_features: torch.Tensor, received_encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Returns the first and second hidden layers."""
+        h1 = self.fc1(torch.cat([obs_features, self.message_in(received_encoded)], -1))
+        return h1, self.fc2(h1)
+
+    def forward(self, planes: torch.Tensor, received: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Move logits `(N, 5)` and message logits `(N, out)` for `(N, 2, S, S)` planes and `(N, slots, K)` bits."""
+        _, h2 = self.trunk(self.observation_features(planes), self.encode_received(received))
+        return self.move_logits(h2), self.message_logits(h2)
+
+
+def others_actions(moves: torch.Tensor, given: torch.Tensor) -> torch.Tensor:
+    """One-hot actions of every agent, zeroed where not given, each with its "given" flag.
+
+    `moves`, `given`: `(N, n)`; returns `(N, n * (5 + 1))`.
+    """
+    g = given.float()
+    onehot = nn.functional.one_hot(moves, N_MOVES).float() * g[..., None]
+    return torch.cat([onehot, g[..., None]], -1).flatten(1)
+
+
+class CriticNet(nn.Module):
+    """V(s, whose value, other agents' actions with a mask [, messages that agent received]).
+
+    `with_message=True` is V1 (standard estimator); `False` is V2 (improved estimator). The state is
+    convolved once per step; which agent is judged and which actions are given enter as a vector, so
+    one network answers every query of SPEC section 4 (several recipients: mask their actions).
+    """
+
+    def __init__(self, task: TaskConfig, cfg: ModelConfig, with_message: bool) -> None:
+        super().__init__()
+        n, size = task.env.n_agents, task.env.size
+        self.n_agents, self.with_message = n, with_message
+        self.head = make_head(cfg.messages, task.channel.bits)
+        self.conv, flat = _conv_stack(2 * n, cfg.conv_channels, size)
+        extra = n + n * (N_MOVES + 1) + (task.slots * self.head.in_features if with_message else 0)
+        self.extra_in = nn.Sequential(nn.Linear(extra, cfg.message_hidden), nn.ReLU())
+        self.body = nn.Sequential(
+            nn.Linear(flat + cfg.message_hidden, cfg.hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.hidden, cfg.hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.hidden, 1),
+        )
+
+    def state_features(self, state: torch.Tensor) -> torch.Tensor:
+        """`(M, 2n, S, S)` state planes -> `(M, flat)`, shared by every query about that state."""
+        return self.conv(state.float())
+
+    def value(
+        self,
+        features: torch.Tensor,
+        viewpoint: torch.Tensor,
+        moves: torch.Tensor,
+        given: torch.Tensor,
+        received: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """`features (N, flat)`, `viewpoint (N,)`, `moves/given (N, n)`, `received (N, slots, K)` -> `(N,)`."""
+        extra = [nn.functional.one_hot(viewpoint, self.n_agents).float(), others_actions(moves, given)]
+        if self.with_message:
+            assert received is not None, "V1 conditions on the received message"
+            extra.append(self.head.encode(received).flatten(1))
+        return self.body(torch.cat([features, self.extra_in(torch.cat(extra, -1))], -1))[:, 0]

@@ -1,0 +1,100 @@
+"""Collect whole episodes from B environments into preallocated `(T, B, n, ...)` arrays.
+
+Every batch plays B fresh episodes from their first step to their end, so returns are Monte Carlo
+over whole episodes (paper IV; truncation at `max_steps` ends an episode with no further reward).
+Steps after a slot's episode ended are padding, marked invalid.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from bitcomm.agent import act
+from bitcomm.config import TaskConfig
+from bitcomm.envs.vec import Observation, VecGoalExchange
+from bitcomm.evaluation import play_first_episodes
+from bitcomm.networks import PolicyNet
+
+
+class Rollout(NamedTuple):
+    """B whole episodes, time-major. Tensors share memory with the collector's buffers."""
+
+    planes: torch.Tensor  # (T, B, n, 2, S, S) uint8
+    received: torch.Tensor  # (T, B, n, slots, K) uint8
+    state: torch.Tensor  # (T, B, 2n, S, S) uint8
+    moves: torch.Tensor  # (T, B, n) int64
+    bits: torch.Tensor  # (T, B, n, K) uint8, as sent
+    logp_move: torch.Tensor  # (T, B, n) at acting time
+    logp_message: torch.Tensor  # (T, B, n)
+    dropped: torch.Tensor  # (T, B, n) bool
+    rewards: torch.Tensor  # (T, B) team reward
+    done: torch.Tensor  # (T, B) bool, the episode ended after this step
+    valid: torch.Tensor  # (T, B) bool
+    goal: torch.Tensor  # (B, n) int64, each agent's own goal cell (privileged: training-time only)
+    length: np.ndarray  # (B,) episode lengths
+    team_return: np.ndarray  # (B,)
+    success: np.ndarray  # (B,)
+
+
+class Collector:
+    """Plays batches of B first episodes with a policy network, sampling as it was trained."""
+
+    def __init__(self, task: TaskConfig, num_envs: int) -> None:
+        self.task, self.num_envs = task, num_envs
+        T, B = task.env.max_steps, num_envs
+        n, S, K, slots = task.env.n_agents, task.env.size, task.channel.bits, task.slots
+        self.planes = np.zeros((T, B, n, 2, S, S), dtype=np.uint8)
+        self.received = np.zeros((T, B, n, slots, K), dtype=np.uint8)
+        self.state = np.zeros((T, B, 2 * n, S, S), dtype=np.uint8)
+        self.moves = np.zeros((T, B, n), dtype=np.int64)
+        self.bits = np.zeros((T, B, n, K), dtype=np.uint8)
+        self.logp = np.zeros((2, T, B, n), dtype=np.float32)
+        self.dropped = np.zeros((T, B, n), dtype=bool)
+        self.rewards = np.zeros((T, B), dtype=np.float32)
+        self.done = np.zeros((T, B), dtype=bool)
+        self.valid = np.zeros((T, B), dtype=bool)
+
+    def collect(self, net: PolicyNet, seed: np.random.SeedSequence, generator: torch.Generator) -> Rollout:
+        env = VecGoalExchange(self.task, self.num_envs, seed=seed)
+        goal = env.core.goal.copy()
+        B = self.num_envs
+        length, team_return, success = np.zeros(B, np.int64), np.zeros(B), np.zeros(B, bool)
+        t = 0
+
+        def policy(obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+            self.planes[t], self.received[t], self.state[t] = obs.planes, obs.received, obs.state
+            moves, bits, lp_move, lp_msg = act(
+                net,
+                torch.from_numpy(self.planes[t]).flatten(0, 1),
+                torch.from_numpy(self.received[t]).flatten(0, 1),
+                generator=generator,
+            )
+            self.moves[t] = moves.view(B, -1).numpy()
+            self.bits[t] = bits.view(B, -1, bits.shape[-1]).numpy()
+            self.logp[0, t], self.logp[1, t] = lp_move.view(B, -1).numpy(), lp_msg.view(B, -1).numpy()
+            return self.moves[t], self.bits[t]
+
+        for step in play_first_episodes(env, policy):
+            fin = step.result.finished
+            self.rewards[t] = step.result.team_reward
+            self.dropped[t] = step.dropped
+            self.valid[t] = step.active
+            self.done[t] = False
+            first = step.active[fin.index]
+            idx = fin.index[first]
+            self.done[t, idx] = True
+            length[idx], team_return[idx], success[idx] = fin.length[first], fin.team_return[first], fin.success[first]
+            t += 1
+
+        def view(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(a[:t])
+
+        return Rollout(
+            view(self.planes), view(self.received), view(self.state), view(self.moves), view(self.bits),
+            torch.from_numpy(self.logp[0, :t]), torch.from_numpy(self.logp[1, :t]), view(self.dropped),
+            view(self.rewards), view(self.done), view(self.valid), torch.from_numpy(goal),
+            length, team_return, success,
+        )  # fmt: skip

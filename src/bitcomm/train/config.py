@@ -1,0 +1,148 @@
+"""`TrainConfig`: everything a training run needs, with named recipes.
+
+A recipe is a named set of learning options. `paper` is the paper's own training, nothing added:
+asynchronous actor-critic, Monte Carlo returns over whole episodes, one gradient step per batch,
+an entropy bonus on both heads. `fast` (the default) adds options beyond the paper, each one a
+named field below, so that the four techniques can be compared under either recipe alike.
+Options that use privileged training-time information say so in their docstring.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import bad_value
+from bitcomm.estimators import ESTIMATORS
+from bitcomm.heads import MESSAGE_HEADS
+from bitcomm.networks import ModelConfig
+
+MODES = ("sync", "a3c")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    task: TaskConfig = field(default_factory=TaskConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    recipe: str = "fast"
+    """The named recipe these options came from (for the record; the fields below are what counts)."""
+    estimator: str = "improved"
+    """`standard` (paper eq. 7) or `improved` (paper eq. 8)."""
+    mode: str = "sync"
+    """`sync`: batches of vectorized episodes; `a3c`: the paper's asynchronous workers."""
+    workers: int = 2
+    """Worker processes in `a3c` mode."""
+    episodes: int = 100_000
+    """Budget: environment episodes to play."""
+    seed: int = 0
+    num_envs: int = 128
+    """Episodes per batch (per worker in `a3c` mode)."""
+    lr: float = 1e-3
+    critic_lr: float = 1e-3
+    gamma: float = 0.95
+    entropy_move: float = 0.01
+    entropy_message: float = 0.001
+    max_grad_norm: float = 1.0
+    epochs: int = 1
+    """Passes over each batch (PPO-style reuse when > 1)."""
+    minibatches: int = 1
+    """Minibatches per pass, split by whole episodes."""
+    clip: float = 0.0
+    """PPO ratio clipping for reused batches; 0 is the plain policy gradient."""
+    adv_norm: bool = False
+    """Divide the advantages of a batch by their standard deviation."""
+    goal_coef: float = 0.0
+    """Privileged (training time only): weight of a loss that makes each agent's first hidden layer
+    predict its own goal (row and column) from what it observes and hears. Centralised training uses
+    the true goal as the label; acting never sees it. Its gradient reaches the sender through the
+    channel (see `channel_noise`), so the sender learns to say what lets the receiver name its goal."""
+    seen_coef: float = 0.0
+    """Weight of a loss that makes each agent's first hidden layer predict the goal it observes (its
+    own observation, so not privileged): the message head then has the goal at hand to tell."""
+    channel_noise: float = 1.0
+    """How the goal-grounding loss reaches the sender: > 0, through a relaxed channel, the receiver
+    reading sigmoid(sender logit + channel_noise * N(0, 1)) (DIAL); 0, straight through the sampled
+    bits. Acting and the channel itself stay discrete either way."""
+    checkpoint_seconds: float = 60.0
+    """Write a checkpoint at most this often (and at the end)."""
+
+    def __post_init__(self) -> None:
+        if self.estimator not in ESTIMATORS:
+            raise bad_value("estimator", self.estimator, f"choose one of {', '.join(ESTIMATORS)}")
+        if self.model.messages not in MESSAGE_HEADS:
+            raise bad_value("messages", self.model.messages, f"choose one of {', '.join(MESSAGE_HEADS)}")
+        if self.mode not in MODES:
+            raise bad_value("mode", self.mode, f"choose one of {', '.join(MODES)}")
+        if self.recipe not in RECIPES:
+            raise bad_value("recipe", self.recipe, f"choose one of {', '.join(RECIPES)}")
+        for name in ("workers", "episodes", "num_envs", "epochs", "minibatches"):
+            if int(getattr(self, name)) < 1:
+                raise bad_value(name.replace("_", "-"), getattr(self, name), "must be an integer >= 1")
+        if self.minibatches > self.num_envs:
+            raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
+        for name in ("lr", "critic_lr", "max_grad_norm"):
+            if not float(getattr(self, name)) > 0:
+                raise bad_value(name.replace("_", "-"), getattr(self, name), "must be > 0")
+        if not 0.0 < self.gamma <= 1.0:
+            raise bad_value("gamma", self.gamma, "must be in (0, 1]")
+        for name in ("entropy_move", "entropy_message", "clip", "goal_coef", "seen_coef", "channel_noise"):
+            if float(getattr(self, name)) < 0:
+                raise bad_value(name.replace("_", "-"), getattr(self, name), "must be >= 0")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+        d = dict(d)
+        task = d.pop("task")
+        model = dict(d.pop("model"))
+        model["conv_channels"] = tuple(model["conv_channels"])
+        return cls(
+            task=TaskConfig(EnvConfig(**task["env"]), ChannelConfig(**task["channel"])),
+            model=ModelConfig(**model),
+            **d,
+        )
+
+
+RECIPES: dict[str, dict[str, Any]] = {
+    "paper": dict(
+        mode="a3c",
+        num_envs=1,
+        lr=1e-3,
+        epochs=1,
+        minibatches=1,
+        clip=0.0,
+        adv_norm=False,
+        goal_coef=0.0,
+        seen_coef=0.0,
+        coords=False,
+    ),
+    "fast": dict(
+        mode="sync",
+        num_envs=128,
+        lr=1e-3,
+        epochs=4,
+        minibatches=4,
+        clip=0.2,
+        adv_norm=True,
+        goal_coef=1.0,
+        seen_coef=1.0,
+        channel_noise=1.0,
+        coords=True,
+    ),
+}
+"""Each recipe's values for the learning options; any flag given explicitly overrides them."""
+
+MODEL_OPTIONS = {f.name for f in dataclasses.fields(ModelConfig)}
+
+
+def make_train_config(recipe: str = "fast", task: TaskConfig | None = None, **overrides: Any) -> TrainConfig:
+    """A TrainConfig from a recipe plus explicit options (None means "the recipe's value")."""
+    if recipe not in RECIPES:
+        raise bad_value("recipe", recipe, f"choose one of {', '.join(RECIPES)}")
+    values = {**RECIPES[recipe], **{k: v for k, v in overrides.items() if v is not None}}
+    model = ModelConfig(**{k: values.pop(k) for k in list(values) if k in MODEL_OPTIONS})
+    return TrainConfig(task=task or TaskConfig(), model=model, recipe=recipe, **values)

@@ -1,0 +1,231 @@
+"""One learning update from a batch of whole episodes, shared by the sync and A3C trainers.
+
+# baselines  critics evaluated once per batch (V1 for standard, V2 with masks for improved)
+# advantages the estimator chosen by name (bitcomm.estimators), optionally normalised
+# update     policy loss (+ entropy, + optional goal grounding), critic MSE to Q_t, per-loss clipping
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from bitcomm.estimators import Advantages, EstimatorBatch, get_estimator, policy_gradient_loss
+from bitcomm.networks import CriticNet, PolicyNet
+from bitcomm.rollout import Rollout
+from bitcomm.train.config import TrainConfig
+
+
+def clipped_policy_loss(
+    logp_action: torch.Tensor,
+    logp_message: torch.Tensor,
+    old_action: torch.Tensor,
+    old_message: torch.Tensor,
+    adv: Advantages,
+    valid: torch.Tensor,
+    clip: float,
+) -> torch.Tensor:
+    """PPO's clipped surrogate, applied to the action and message parts with their own advantages."""
+
+    def part(logp: torch.Tensor, old: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        ratio = torch.exp(logp - old)
+        return torch.minimum(ratio * a, ratio.clamp(1 - clip, 1 + clip) * a)
+
+    per_step = (part(logp_action, old_action, adv.action) + part(logp_message, old_message, adv.message)).sum(-1)
+    return -torch.where(valid, per_step, 0.0).sum() / valid.sum().clamp(min=1)
+
+
+class Learner:
+    """Policy, critic and their optimizers; `update(rollout)` returns figures for the log."""
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        self.cfg = cfg
+        task = cfg.task
+        self.n = task.env.n_agents
+        self.policy = PolicyNet(task, cfg.model)
+        self.critic = CriticNet(task, cfg.model, with_message=cfg.estimator == "standard")
+        self.opt_policy = torch.optim.Adam(self.policy.parameters(), lr=cfg.lr)
+        self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+        self.estimator = get_estimator(cfg.estimator)
+        rec = task.recipient_matrix
+        self.single_recipient = bool((rec.sum(1) == 1).all())
+        self.recipient_of = torch.from_numpy(rec.argmax(1))  # the (first) recipient of each sender
+        self.not_recipient = torch.from_numpy(~rec)  # (n, n): [j, k] agent k's action may be given for j's message
+        self.slot_senders = torch.from_numpy(task.slot_senders)
+        self.observed = torch.tensor(task.env.observed)
+
+    # ---------------------------------------------------------------- critic
+    def critic_values(
+        self,
+        state: torch.Tensor,
+        moves: torch.Tensor,
+        received: torch.Tensor,
+        viewpoint: torch.Tensor,
+        given: torch.Tensor,
+    ) -> torch.Tensor:
+        """V for M samples x k queries: `state (M, 2n, S, S)`, `moves (M, n)`, `received (M, n, slots, K)`,
+        `viewpoint (k,)`, `given (k, n)` -> `(M, k)`."""
+        M, k = state.shape[0], viewpoint.shape[0]
+        rep = torch.arange(M).repeat_interleave(k)
+        vp = viewpoint.repeat(M)
+        rec = received[rep, vp] if self.critic.with_message else None
+        features = self.critic.state_features(state)
+        v = self.critic.value(features[rep], vp, moves[rep], given.repeat(M, 1), rec)
+        return v.view(M, k)
+
+    def _action_queries(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Agent j's action baseline: centred on j, every other action given."""
+        return torch.arange(self.n), ~torch.eye(self.n, dtype=torch.bool)
+
+    def _message_queries(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Sender j's message baseline: centred on its first recipient, actions of non-recipients given."""
+        return self.recipient_of, self.not_recipient
+
+    @torch.no_grad()
+    def baselines(self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        T, B = ro.valid.shape
+        state, moves, received = ro.state[it, ib], ro.moves[it, ib], ro.received[it, ib]
+        b_action = torch.zeros(T, B, self.n)
+        b_action[it, ib] = self.critic_values(state, moves, received, *self._action_queries())
+        if self.single_recipient:
+            b_message = b_action[:, :, self.recipient_of]
+        else:
+            b_message = torch.zeros(T, B, self.n)
+            b_message[it, ib] = self.critic_values(state, moves, received, *self._message_queries())
+        return b_action, b_message
+
+    # ---------------------------------------------------------------- update
+    def update(self, ro: Rollout, generator: torch.Generator | None = None) -> dict[str, float]:
+        cfg = self.cfg
+        it, ib = ro.valid.nonzero(as_tuple=True)
+        b_action, b_message = self.baselines(ro, it, ib)
+        batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
+        adv = self.estimator(batch, cfg.gamma, cfg.task.channel.delay)
+        if cfg.adv_norm:
+            adv = Advantages(*(_scaled(a, ro.valid) for a in adv[:2]), adv.returns)
+        B = ro.valid.shape[1]
+        stats: dict[str, list[float]] = {}
+        for _ in range(cfg.epochs):
+            order = torch.randperm(B, generator=generator) if cfg.minibatches > 1 else torch.arange(B)
+            for cols in order.chunk(cfg.minibatches):
+                for k, v in self._step(ro, adv, cols).items():
+                    stats.setdefault(k, []).append(v)
+        return {k: float(np.mean(v)) for k, v in stats.items()}
+
+    def _step(self, ro: Rollout, adv: Advantages, cols: torch.Tensor) -> dict[str, float]:
+        """One gradient step of policy and critic on the whole episodes in columns `cols`."""
+        cfg, policy, head, n = self.cfg, self.policy, self.policy.head, self.n
+        valid = ro.valid[:, cols]
+        it, ib = valid.nonzero(as_tuple=True)
+        bc = cols[ib]
+        M = it.shape[0]
+        T, Bc = valid.shape
+        received = ro.received[it, bc]  # (M, n, slots, K)
+        feats = policy.observation_features(ro.planes[it, bc].flatten(0, 1))
+        h1, h2 = policy.trunk(feats, policy.encode_received(received.flatten(0, 1)))
+        msg_logits, move_logits = policy.message_logits(h2), policy.move_logits(h2)
+
+        def full(x: torch.Tensor) -> torch.Tensor:  # (M, n) sample values -> (T, Bc, n)
+            out = torch.zeros(T, Bc, n, dtype=x.dtype)
+            out[it, ib] = x
+            return out
+
+        moves, bits = ro.moves[it, bc], ro.bits[it, bc]
+        logp_move = full(torch.log_softmax(move_logits, -1).gather(-1, moves.view(-1, 1)).view(M, n))
+        logp_msg = full(head.log_prob(msg_logits, bits.flatten(0, 1)).view(M, n))
+        sub = Advantages(adv.action[:, cols], adv.message[:, cols], adv.returns[:, cols])
+        if cfg.clip > 0:
+            pg = clipped_policy_loss(
+                logp_move, logp_msg, ro.logp_move[:, cols], ro.logp_message[:, cols], sub, valid, cfg.clip
+            )
+        else:
+            pg = policy_gradient_loss(logp_move, logp_msg, sub, valid)
+        ent_move = -(torch.softmax(move_logits, -1) * torch.log_softmax(move_logits, -1)).sum(-1).mean()
+        ent_msg = head.entropy(msg_logits).mean()
+        loss = pg - n * (cfg.entropy_move * ent_move + cfg.entropy_message * ent_msg)
+        out = {
+            "losses/policy": pg.item(),
+            "charts/entropy_move": ent_move.item(),
+            "charts/entropy_message": ent_msg.item(),
+        }
+        losses = [loss]
+        S = cfg.task.env.size
+        if cfg.goal_coef > 0:  # privileged: the receiver names its own goal from what it heard
+            h1_heard, _ = policy.trunk(feats, self._heard(ro, cols, it, ib, received, msg_logits))
+            goal_loss = _cell_loss(policy.goal_logits(h1_heard), ro.goal[bc].flatten(), S)
+            losses.append(cfg.goal_coef * goal_loss)
+            out["losses/goal"] = goal_loss.item()
+        if cfg.seen_coef > 0:  # the sender names the goal it observes
+            seen = ro.goal[bc][:, self.observed].flatten()
+            seen_loss = _cell_loss(policy.seen_logits(h1), seen, S)
+            losses.append(cfg.seen_coef * seen_loss)
+            out["losses/seen"] = seen_loss.item()
+        self._clipped_step(self.opt_policy, list(policy.parameters()), losses)
+
+        # critic: regress on Q_t for every query it answers
+        state, returns = ro.state[it, bc], adv.returns[it, bc]
+        values = [self.critic_values(state, moves, received, *self._action_queries())]
+        if not self.single_recipient:
+            values.append(self.critic_values(state, moves, received, *self._message_queries()))
+        v = torch.cat(values, 1)
+        v_loss = F.mse_loss(v, returns[:, None].expand_as(v))
+        self._clipped_step(self.opt_critic, list(self.critic.parameters()), [v_loss])
+        out["losses/value"] = v_loss.item()
+        return out
+
+    def _clipped_step(
+        self, opt: torch.optim.Optimizer, params: list[torch.nn.Parameter], losses: list[torch.Tensor]
+    ) -> None:
+        """Clip each loss's gradient to `max_grad_norm` on its own, then step on their sum, so an
+        auxiliary loss is neither drowned by the policy gradient nor drowns it."""
+        total: list[torch.Tensor | None] = [None] * len(params)
+        for k, loss in enumerate(losses):
+            grads = torch.autograd.grad(loss, params, retain_graph=k < len(losses) - 1, allow_unused=True)
+            present = [g for g in grads if g is not None]
+            norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in present]))
+            scale = min(1.0, self.cfg.max_grad_norm / (float(norm) + 1e-6))
+            total = [
+                t if g is None else (g * scale if t is None else t + g * scale)
+                for t, g in zip(total, grads, strict=True)
+            ]
+        for p, g in zip(params, total, strict=True):
+            p.grad = g
+        opt.step()
+
+    def _heard(
+        self,
+        ro: Rollout,
+        cols: torch.Tensor,
+        it: torch.Tensor,
+        ib: torch.Tensor,
+        received: torch.Tensor,
+        msg_logits: torch.Tensor,
+    ) -> torch.Tensor:
+        """Receivers' inputs as a differentiable function of senders' logits (see TrainConfig.channel_noise)."""
+        T, Bc = ro.valid.shape[0], cols.shape[0]
+        n, head, d = self.n, self.policy.head, self.cfg.task.channel.delay
+        logits = torch.zeros(T, Bc, n, msg_logits.shape[-1])
+        logits[it, ib] = msg_logits.view(it.shape[0], n, -1)
+        ts = (it - d).clamp(min=0)[:, None, None]
+        snd = self.slot_senders.clamp(min=0)[None]  # (1, n, slots)
+        src = ts, ib[:, None, None], snd
+        sent_bits = ro.bits[:, cols][src]  # (M, n, slots, K)
+        use = (it >= d)[:, None, None] & (self.slot_senders >= 0)[None] & ~ro.dropped[:, cols][src]
+        flips = received ^ sent_bits
+        noise = self.cfg.channel_noise
+        if noise > 0:
+            soft = head.relaxed(logits[src], flips, noise)
+        else:
+            soft = head.straight_through(logits[src], received, flips)
+        return torch.where(use[..., None], soft, head.encode(received)).flatten(0, 1).flatten(1)
+
+
+def _cell_loss(logits: torch.Tensor, cell: torch.Tensor, size: int) -> torch.Tensor:
+    """Cross-entropy of row and column read-outs `(N, 2 * size)` against cell indices `(N,)`."""
+    return F.cross_entropy(logits[:, :size], cell // size) + F.cross_entropy(logits[:, size:], cell % size)
+
+
+def _scaled(a: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    std = a[valid].std()
+    return a / (std + 1e-8) if torch.isfinite(std) else a

@@ -1,0 +1,99 @@
+"""Message heads, networks and one learning update: shapes, probabilities and the channel's gradient."""
+
+import numpy as np
+import pytest
+import torch
+
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.envs.channel import bits_to_index
+from bitcomm.heads import BitwiseHead, OneHotHead, make_head
+from bitcomm.errors import ConfigError
+from bitcomm.networks import CriticNet, ModelConfig, PolicyNet
+from bitcomm.rollout import Collector
+from bitcomm.train.config import make_train_config
+from bitcomm.train.learner import Learner
+
+TINY = TaskConfig(EnvConfig(size=4, max_steps=20), ChannelConfig(bits=3))
+
+
+def test_bitwise_log_prob_is_sum_over_independent_bits():
+    head = BitwiseHead(3)
+    logits = torch.tensor([[0.0, 2.0, -1.0]])
+    bits = torch.tensor([[1, 0, 1]], dtype=torch.uint8)
+    p = torch.sigmoid(logits)[0]
+    expected = torch.log(p[0]) + torch.log(1 - p[1]) + torch.log(p[2])
+    assert torch.allclose(head.log_prob(logits, bits), expected[None])
+
+
+@pytest.mark.parametrize("name", ["bitwise", "onehot"])
+def test_heads_are_distributions_over_the_same_2k_messages(name):
+    head = make_head(name, 3)
+    logits = torch.randn(5, head.out_features)
+    all_bits = torch.tensor([[(m >> (2 - k)) & 1 for k in range(3)] for m in range(8)], dtype=torch.uint8)
+    logp = torch.stack([head.log_prob(logits, all_bits[m].expand(5, 3)) for m in range(8)], -1)
+    assert torch.allclose(logp.exp().sum(-1), torch.ones(5), atol=1e-5)
+    entropy = -(logp.exp() * logp).sum(-1)
+    assert torch.allclose(head.entropy(logits), entropy, atol=1e-5)
+    sample = head.sample(logits, torch.Generator().manual_seed(0))
+    assert sample.shape == (5, 3) and sample.dtype == torch.uint8
+    assert head.encode(sample).shape == (5, head.in_features)
+
+
+def test_output_size_grows_linearly_for_bitwise_and_exponentially_for_onehot():
+    assert [BitwiseHead(k).out_features for k in (7, 8, 10)] == [7, 8, 10]
+    assert [OneHotHead(k).out_features for k in (7, 8, 10)] == [128, 256, 1024]
+
+
+def test_unknown_head_is_a_config_error():
+    with pytest.raises(ConfigError, match="messages='morse'"):
+        make_head("morse", 3)
+
+
+@pytest.mark.parametrize("name", ["bitwise", "onehot"])
+def test_straight_through_keeps_the_received_value_and_passes_gradient(name):
+    head = make_head(name, 3)
+    logits = torch.randn(4, head.out_features, requires_grad=True)
+    received = torch.tensor([[1, 0, 1], [0, 0, 0], [1, 1, 1], [0, 1, 0]], dtype=torch.uint8)
+    flips = torch.tensor([[0, 0, 1], [0, 0, 0], [1, 0, 0], [0, 0, 0]], dtype=torch.uint8)
+    enc = head.straight_through(logits, received, flips)
+    assert torch.allclose(enc, head.encode(received))
+    enc.sum().backward() if name == "bitwise" else enc[torch.arange(4), bits_to_index(received)].sum().backward()
+    assert logits.grad is not None and logits.grad.abs().sum() > 0
+
+
+def test_policy_and_critics_shapes():
+    task = TaskConfig(EnvConfig(size=5, n_agents=3), ChannelConfig(bits=4, recipients=((1, 2), (0,), (0,))))
+    net = PolicyNet(task, ModelConfig(coords=True))
+    planes = torch.zeros(6, 2, 5, 5)
+    received = torch.zeros(6, task.slots, 4, dtype=torch.uint8)
+    moves, msg = net(planes, received)
+    assert moves.shape == (6, 5) and msg.shape == (6, 4)
+    for with_message in (True, False):
+        critic = CriticNet(task, ModelConfig(), with_message)
+        feats = critic.state_features(torch.zeros(6, 6, 5, 5))
+        given = torch.ones(6, 3, dtype=torch.bool)
+        v = critic.value(feats, torch.zeros(6, dtype=torch.long), torch.zeros(6, 3, dtype=torch.long), given, received)
+        assert v.shape == (6,)
+
+
+@pytest.mark.parametrize("recipe", ["paper", "fast"])
+@pytest.mark.parametrize("estimator", ["standard", "improved"])
+def test_one_update_runs_and_changes_the_policy(recipe, estimator):
+    torch.manual_seed(0)
+    cfg = make_train_config(recipe, TINY, estimator=estimator, num_envs=8, mode="sync")
+    learner, collector = Learner(cfg), Collector(TINY, 8)
+    before = [p.detach().clone() for p in learner.policy.parameters()]
+    rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    stats = learner.update(rollout, torch.Generator().manual_seed(0))
+    assert all(np.isfinite(v) for v in stats.values())
+    assert any(not torch.equal(a, b) for a, b in zip(before, learner.policy.parameters(), strict=True))
+
+
+def test_rollout_holds_whole_first_episodes():
+    cfg = make_train_config("paper", TINY, num_envs=16, mode="sync")
+    ro = Collector(TINY, 16).collect(PolicyNet(TINY, cfg.model), np.random.SeedSequence(1), torch.Generator())
+    assert (ro.valid.sum(0).numpy() == ro.length).all()
+    assert (ro.done.sum(0) == 1).all()  # exactly one end per column, at its last valid step
+    last = torch.from_numpy(ro.length - 1)
+    assert ro.done[last, torch.arange(16)].all()
+    assert np.allclose(ro.rewards.masked_fill(~ro.valid, 0).sum(0).numpy(), ro.team_return, atol=1e-4)
