@@ -10,7 +10,7 @@ from typing import NoReturn
 
 from bitcomm.errors import ConfigError
 
-COMMANDS = ("baseline", "render", "analyze", "deploy", "sweep")
+COMMANDS = ("baseline", "render", "analyze", "deploy", "sweep", "train", "eval")
 
 
 class _Parser(argparse.ArgumentParser):

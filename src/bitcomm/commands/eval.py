@@ -1,0 +1,43 @@
+"""`bitcomm eval RUN_OR_CHECKPOINT`: measure a trained policy, with the JSON keys of `bitcomm baseline`.
+
+The task is the one the policy was trained on; task flags typed on the command line change it, so a
+policy trained clean can be measured under noise, drops or delay (grid size, agents and bits must
+match the network). Acting goes through `bitcomm.Controller`, as a deployed robot would.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from bitcomm.commands.common import add_task_flags, check_episodes, print_result
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    from bitcomm.policy_source import mark_task_defaults
+
+    p = sub.add_parser("eval", help="evaluate a trained policy (run folder or checkpoint file)")
+    p.add_argument(
+        "run_path", metavar="RUN_OR_CHECKPOINT", help="run folder or .safetensors file"
+    )
+    p.add_argument("--episodes", type=int, default=2000, help="evaluation episodes (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the episode set and of sampling (default %(default)s)")
+    p.add_argument("--greedy", action="store_true", help="most likely move and message instead of sampling")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_task_flags(p)
+    mark_task_defaults(p)
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from bitcomm.agent_policies import BatchedPolicy, ControllerAgent
+    from bitcomm.controller import Controller
+    from bitcomm.evaluation import evaluate
+    from bitcomm.policy_source import resolve_task
+
+    episodes = check_episodes(args.episodes)
+    controller = Controller.load(args.run_path, seed=args.seed)
+    task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", strict=True)
+    policy = BatchedPolicy(ControllerAgent(controller, greedy=args.greedy))
+    result = evaluate(policy, task, episodes, args.seed)
+    print_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
+    return 0
