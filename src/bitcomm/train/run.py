@@ -8,7 +8,8 @@
 
 `sync` mode: batch k plays `num_envs` whole episodes seeded by `SeedSequence(seed, spawn_key=(k,))`
 and makes one learner update; the weights are initialised under `torch.manual_seed(seed)` and all
-sampling and minibatch order come from one generator seeded with `seed`, whose state is checkpointed.
+sampling and minibatch order come from one generator seeded with `seed`; its state and the global torch
+generator's (which training-time noise may draw from) are checkpointed.
 So a run is reproducible bit for bit on one machine, and a resumed run continues exactly as if it
 had never stopped.
 """
@@ -242,6 +243,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
         learner.opt_policy.load_state_dict(saved["opt_policy"])
         learner.opt_critic.load_state_dict(saved["opt_critic"])
         generator.set_state(saved["generator"])
+        torch.set_rng_state(saved["torch_rng"])  # anything drawing from the global generator continues too
         prog.restore(saved)
         config_extra = {
             k: v for k, v in json.loads((out / "config.json").read_text()).items() if k == "oracle_mean_episode_length"
@@ -258,6 +260,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
             "opt_policy": learner.opt_policy.state_dict(),
             "opt_critic": learner.opt_critic.state_dict(),
             "generator": generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
         }
         path = save_checkpoint(out, cfg.to_dict(), checkpoint_weights(learner), prog.episodes, prog.batches, state)
         plot_learning_curve(out)

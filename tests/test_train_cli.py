@@ -1,0 +1,165 @@
+"""`bitcomm train` / `bitcomm eval` / `Controller` on a tiny task: the run folder, a kill and a resume,
+bit-for-bit reproducibility, Controller against the evaluator, and one-line errors for bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from bitcomm.cli import main
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+
+TINY = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16"]
+ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+BUDGET = 160  # 10 batches of 16 episodes
+
+
+def bitcomm(*args: str, check: bool = True) -> subprocess.CompletedProcess:
+    out = subprocess.run(
+        [sys.executable, "-m", "bitcomm.cli", *args], capture_output=True, text=True, env=ENV, timeout=120
+    )
+    if check:
+        assert out.returncode == 0, out.stderr
+    return out
+
+
+def tiny_config(**kw):
+    from bitcomm.train.config import make_train_config
+
+    task = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
+    return make_train_config("fast", task, num_envs=16, episodes=BUDGET, checkpoint_seconds=0.0, **kw)
+
+
+def rows(run: Path) -> list[dict[str, str]]:
+    with (run / "metrics.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def learning_columns(run: Path) -> list[dict[str, str]]:
+    return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows(run)]
+
+
+def weights(run: Path) -> dict[str, torch.Tensor]:
+    from bitcomm.checkpoint import load_weights
+
+    w, _ = load_weights(run)
+    return {f"{p}.{k}": v for p, sd in w.items() for k, v in sd.items()}
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("train") / "run"
+    res = bitcomm("train", *TINY, "--episodes", "48", "--quiet", "--eval-episodes", "50", "--out", str(out))
+    assert str(out) in res.stdout and "mean episode length" in res.stdout
+    return out
+
+
+def test_train_writes_run_folder(run_dir: Path) -> None:
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["seed"] == 0 and "git_commit" in config and "command" in config
+    assert set(config["versions"]) >= {"python", "torch", "numpy", "bitcomm"}
+    assert config["task"]["env"]["size"] == 4
+    r = rows(run_dir)
+    assert [int(x["episodes"]) for x in r] == [16, 32, 48]
+    assert {"agent_steps", "charts/episode_length", "charts/episode_length_rolling", "losses/policy"} <= set(r[0])
+    assert any((run_dir / "tb").iterdir())
+    assert (run_dir / "learning_curve.png").stat().st_size > 0
+    latest = json.loads((run_dir / "checkpoints" / "latest.json").read_text())
+    assert latest["episodes"] == 48 and (run_dir / "checkpoints" / latest["checkpoint"]).is_file()
+    assert (run_dir / "checkpoints" / latest["state"]).is_file()
+
+
+def test_sync_runs_are_reproducible(tmp_path: Path) -> None:
+    from bitcomm.train.run import train
+
+    torch.set_num_threads(1)
+    for name in ("a", "b"):
+        train(tiny_config(), tmp_path / name, progress=False)
+    assert learning_columns(tmp_path / "a") == learning_columns(tmp_path / "b")
+    wa, wb = weights(tmp_path / "a"), weights(tmp_path / "b")
+    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+
+    # a run killed after its first checkpoint and resumed ends exactly where the uninterrupted one did
+    killed = tmp_path / "killed"
+    args = ["train", *TINY, "--episodes", str(BUDGET), "--checkpoint-seconds", "0", "--quiet", "--eval-episodes", "0"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bitcomm.cli", *args, "--out", str(killed)],
+        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    latest = killed / "checkpoints" / "latest.json"
+    deadline = time.monotonic() + 60
+    while not latest.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert json.loads(latest.read_text())["episodes"] < BUDGET, "the run ended before it could be killed"
+    bitcomm(*args, "--out", str(killed), "--resume")
+    assert learning_columns(killed) == learning_columns(tmp_path / "a")
+    wk = weights(killed)
+    assert all(torch.equal(wa[k], wk[k]) for k in wa)
+
+
+def test_eval_json_and_controller(run_dir: Path) -> None:
+    from bitcomm import Controller
+    from bitcomm.agent import NetworkPolicy
+    from bitcomm.evaluation import evaluate
+
+    res = bitcomm("eval", str(run_dir), "--episodes", "100", "--seed", "3", "--greedy", "--json")
+    got = json.loads(res.stdout.strip().splitlines()[-1])
+    assert set(got) == {"episodes", "mean_episode_length", "ci95", "mean_team_return", "success_rate"}
+
+    c = Controller.load(run_dir)
+    assert c.task.env.size == 4 and c.config["estimator"] == "improved"
+    planes = np.zeros((5, 2, 4, 4), np.uint8)
+    planes[:, 0, 0, 0] = planes[:, 1, 3, 3] = 1
+    received = np.zeros((5, c.task.slots, 4), np.uint8)
+    move, bits = c.act(planes[0], received[0])
+    assert np.shape(move) == () and bits.shape == (4,) and bits.dtype == np.uint8
+    moves, bits = c.act(planes, received, greedy=True)
+    assert moves.shape == (5,) and bits.shape == (5, 4)
+    assert np.array_equal(c.act(planes[:1], received[:1], greedy=True)[0], moves[:1])
+
+    # the trainer's own acting path (NetworkPolicy) and `bitcomm eval --greedy` play the same episodes alike
+    ours = evaluate(NetworkPolicy(c.policy, greedy=True), c.task, 100, seed=3)
+    assert ours.mean_episode_length == got["mean_episode_length"]
+    assert ours.success_rate == got["success_rate"]
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "--estimator", "foo"],
+        ["train", "--episodes", "0"],
+        ["train", "--lr", "-1"],
+        ["eval", "{missing}"],
+        ["eval", "{corrupt}"],
+        ["eval", "{corrupt_run}"],
+    ],
+)
+def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    corrupt = tmp_path / "x.safetensors"
+    corrupt.write_bytes(b"not a checkpoint at all")
+    run = tmp_path / "run" / "checkpoints"
+    run.mkdir(parents=True)
+    (run / "latest.json").write_text(json.dumps({"checkpoint": "ckpt_000000016.safetensors"}))
+    (run / "ckpt_000000016.safetensors").write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00{}")
+    paths = {"missing": tmp_path / "nope", "corrupt": corrupt, "corrupt_run": tmp_path / "run"}
+    argv = [a.format(**paths) for a in argv] + ["--out", str(tmp_path / "out")] * (argv[0] == "train")
+    try:
+        rc = main(argv)
+    except SystemExit as e:  # argparse
+        rc = e.code
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert not (tmp_path / "out").exists()
