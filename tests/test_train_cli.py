@@ -37,7 +37,7 @@ def tiny_config(**kw):
     from bitcomm.train.config import make_train_config
 
     task = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
-    return make_train_config("fast", task, num_envs=16, episodes=BUDGET, checkpoint_seconds=0.0, **kw)
+    return make_train_config("fast", task, **{"num_envs": 16, "episodes": BUDGET, "checkpoint_seconds": 0.0, **kw})
 
 
 def rows(run: Path) -> list[dict[str, str]]:
@@ -163,3 +163,21 @@ def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.C
     assert rc == 2
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_a3c_trains_shared_weights_and_resumes(tmp_path: Path) -> None:
+    from bitcomm.train.learner import Learner
+
+    out = tmp_path / "a3c"
+    args = ["train", *TINY, "--mode", "a3c", "--workers", "2", "--quiet", "--eval-episodes", "0", "--out", str(out)]
+    bitcomm(*args, "--episodes", "64")
+    assert [int(r["episodes"]) for r in rows(out)] == [16, 32, 48, 64]
+    cfg = tiny_config(mode="a3c", episodes=64)
+    torch.manual_seed(cfg.seed)
+    init = Learner(cfg).policy.state_dict()
+    trained = weights(out)
+    changed = [k for k, v in init.items() if not torch.equal(trained[f"policy.{k}"], v)]
+    assert changed, "no update reached the shared weights"
+    bitcomm(*args, "--episodes", "96", "--resume")
+    assert [int(r["episodes"]) for r in rows(out)][-2:] == [80, 96]
+    assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] == 96

@@ -1,0 +1,249 @@
+"""Asynchronous actor-critic (the paper's training, SPEC section 5): W worker processes, shared weights.
+
+The main process holds the policy and critic in shared memory, with one Adam per network whose
+moments also live in shared memory (the classic PyTorch A3C pattern). Each worker:
+
+    # sync      copy the shared weights into its local networks
+    # rollout   play `num_envs` whole episodes with its own Collector (batch k: SeedSequence(seed, (k,)))
+    # update    the same `Learner.update` as sync mode, on the local copy; every optimizer step of the
+    #           learner sends the local (clipped) gradients to the shared parameters and steps the
+    #           shared Adam, then reloads the local weights
+
+Episodes are claimed from a shared counter before they are played, so the budget is never exceeded
+by more than one batch per worker. The main process only logs and checkpoints (same folder layout
+as sync mode). Runs are seeded but, being asynchronous, not reproducible bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import queue as queue_mod
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.multiprocessing as mp
+from torch import nn
+
+from bitcomm.checkpoint import save_checkpoint
+from bitcomm.train.config import TrainConfig
+from bitcomm.train.run import (
+    Logger,
+    Progress,
+    _prepare,
+    checkpoint_weights,
+    oracle_level,
+    plot_learning_curve,
+    write_config,
+)
+
+
+def share_adam_state(opt: torch.optim.Optimizer) -> list[dict[str, torch.Tensor]]:
+    """Create (if empty) Adam's per-parameter state and move it to shared memory; in parameter order."""
+    out = []
+    for p in opt.param_groups[0]["params"]:
+        st = opt.state[p]
+        if not st:
+            st["step"] = torch.zeros((), dtype=torch.float32)
+            st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+            st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+        for v in st.values():
+            if isinstance(v, torch.Tensor):
+                v.share_memory_()
+        out.append(st)
+    return out
+
+
+class SharedStep:
+    """Stands in for the learner's optimizer in a worker: `step()` applies the local gradients to the
+    shared parameters with the shared Adam, then copies the shared weights back into the local net."""
+
+    def __init__(
+        self, local: nn.Module, shared: nn.Module, states: list[dict[str, torch.Tensor]], lr: float, lock: Any
+    ) -> None:
+        self.local, self.shared, self.lock = list(local.parameters()), list(shared.parameters()), lock
+        self.opt = torch.optim.Adam(self.shared, lr=lr)
+        for p, st in zip(self.shared, states, strict=True):
+            self.opt.state[p] = st
+
+    def step(self) -> None:
+        for lp, sp in zip(self.local, self.shared, strict=True):
+            sp.grad = lp.grad
+        with self.lock:
+            self.opt.step()
+        pull(self.local, self.shared)
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for p in self.local:
+            p.grad = None
+
+
+@torch.no_grad()
+def pull(local: list[torch.Tensor], shared: list[torch.Tensor]) -> None:
+    for lp, sp in zip(local, shared, strict=True):
+        lp.copy_(sp)
+
+
+def _worker(
+    w: int,
+    cfg: TrainConfig,
+    shared: tuple[nn.Module, nn.Module],
+    states: tuple[list[dict[str, torch.Tensor]], list[dict[str, torch.Tensor]]],
+    lock: Any,
+    claimed: Any,
+    next_batch: Any,
+    results: Any,
+) -> None:
+    try:
+        from bitcomm.rollout import Collector
+        from bitcomm.train.learner import Learner
+
+        torch.set_num_threads(1)
+        worker_seed = np.random.SeedSequence(cfg.seed, spawn_key=(1 << 30, w)).generate_state(2)
+        torch.manual_seed(int(worker_seed[0]))
+        generator = torch.Generator().manual_seed(int(worker_seed[1]))
+        learner = Learner(cfg)
+        learner.opt_policy = SharedStep(learner.policy, shared[0], states[0], cfg.lr, lock)  # type: ignore[assignment]
+        learner.opt_critic = SharedStep(learner.critic, shared[1], states[1], cfg.critic_lr, lock)  # type: ignore[assignment]
+        local = list(learner.policy.parameters()) + list(learner.critic.parameters())
+        remote = list(shared[0].parameters()) + list(shared[1].parameters())
+        collector = Collector(cfg.task, cfg.num_envs)
+        while True:
+            with lock:
+                if claimed.value >= cfg.episodes:
+                    break
+                claimed.value += cfg.num_envs
+                k = next_batch.value
+                next_batch.value += 1
+            # sync, rollout, update
+            pull(local, remote)
+            ro = collector.collect(learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(k,)), generator)
+            stats = learner.update(ro, generator)
+            results.put(("batch", w, ro.length.copy(), ro.team_return.copy(), ro.success.copy(), stats))
+        results.put(("done", w))
+    except BaseException:  # report, so the main process stops with the worker's traceback
+        results.put(("error", w, traceback.format_exc()))
+
+
+def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
+    from tqdm import tqdm
+
+    from bitcomm.train.learner import Learner
+
+    saved = _prepare(cfg, out, resume)
+    torch.manual_seed(cfg.seed)
+    learner = Learner(cfg)
+    prog = Progress()
+    start_batch = 0
+    if saved is not None:
+        learner.policy.load_state_dict(saved["weights"]["policy"])
+        learner.critic.load_state_dict(saved["weights"]["critic"])
+        learner.opt_policy.load_state_dict(saved["opt_policy"])
+        learner.opt_critic.load_state_dict(saved["opt_critic"])
+        prog.restore(saved)
+        start_batch = int(saved.get("next_batch", prog.batches))
+        previous = json.loads((out / "config.json").read_text())
+        extra = {"oracle_mean_episode_length": previous.get("oracle_mean_episode_length")}
+    else:
+        extra = {"oracle_mean_episode_length": oracle_level(cfg)}
+    write_config(cfg, out, extra)
+    logger = Logger(out, prog.batches if saved is not None else None)
+    n = cfg.task.env.n_agents
+
+    learner.policy.share_memory()
+    learner.critic.share_memory()
+    states = (share_adam_state(learner.opt_policy), share_adam_state(learner.opt_critic))
+    ctx = mp.get_context("spawn")
+    lock = ctx.Lock()
+    claimed = ctx.Value("q", prog.episodes, lock=False)
+    next_batch = ctx.Value("q", start_batch, lock=False)
+    results = ctx.Queue()
+    shared = (learner.policy, learner.critic)
+    procs = [
+        ctx.Process(target=_worker, args=(w, cfg, shared, states, lock, claimed, next_batch, results), daemon=True)
+        for w in range(cfg.workers)
+    ]
+
+    def save() -> Path:
+        with lock:  # weights and Adam moments from between two steps
+            weights = {k: {n_: t.clone() for n_, t in sd.items()} for k, sd in checkpoint_weights(learner).items()}
+            state = {
+                **prog.state(),
+                "opt_policy": learner.opt_policy.state_dict(),
+                "opt_critic": learner.opt_critic.state_dict(),
+                "torch_rng": torch.get_rng_state(),
+                "next_batch": next_batch.value,
+            }
+            state = {k: _clone(v) for k, v in state.items()}
+        path = save_checkpoint(out, cfg.to_dict(), weights, prog.episodes, prog.batches, state)
+        plot_learning_curve(out)
+        return path
+
+    bar = tqdm(total=cfg.episodes, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
+    t_start, wall0 = time.perf_counter(), prog.wall_s
+    last_save = time.monotonic()
+    done: set[int] = set()
+    try:
+        for p in procs:
+            p.start()
+        while len(done) < len(procs):
+            try:
+                msg = results.get(timeout=1.0)
+            except queue_mod.Empty:
+                dead = [w for w, p in enumerate(procs) if p.exitcode not in (None, 0) and w not in done]
+                if dead:
+                    raise RuntimeError(f"a3c worker {dead[0]} died (exit code {procs[dead[0]].exitcode})") from None
+                continue
+            if msg[0] == "error":
+                raise RuntimeError(f"a3c worker {msg[1]} failed:\n{msg[2]}")
+            if msg[0] == "done":
+                done.add(msg[1])
+                continue
+            _, _, length, team_return, success, stats = msg
+            prog.batches += 1
+            prog.episodes += len(length)
+            prog.agent_steps += int(length.sum()) * n
+            prog.wall_s = wall0 + time.perf_counter() - t_start
+            prog.recent.extend(int(x) for x in length)
+            prog.recent_return.extend(float(x) for x in team_return)
+            row = {
+                "batch": prog.batches,
+                "episodes": prog.episodes,
+                "agent_steps": prog.agent_steps,
+                "wall_s": round(prog.wall_s, 3),
+                "charts/episode_length": float(length.mean()),
+                "charts/episode_length_rolling": float(np.mean(prog.recent)),
+                "charts/team_return": float(team_return.mean()),
+                "charts/success": float(success.mean()),
+                **stats,
+            }
+            logger.log(row)
+            bar.update(len(length))
+            bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")
+            if time.monotonic() - last_save >= cfg.checkpoint_seconds and claimed.value < cfg.episodes:
+                save()
+                last_save = time.monotonic()
+        for p in procs:
+            p.join()
+        return save()
+    finally:
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+            p.join(timeout=5)
+        bar.close()
+        logger.close()
+
+
+def _clone(v: Any) -> Any:
+    """A deep copy of tensors inside dicts and lists (the shared ones keep changing)."""
+    if isinstance(v, torch.Tensor):
+        return v.clone()
+    if isinstance(v, dict):
+        return {k: _clone(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_clone(x) for x in v]
+    return v
