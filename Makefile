@@ -4,6 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 TORCH := torch==2.13.0
 RUN ?= runs/default
+EPISODES ?= 20000
 
 .PHONY: install train test lint bench clean
 
@@ -16,7 +17,7 @@ $(BIN)/bitcomm: pyproject.toml
 install: $(BIN)/bitcomm
 
 train: install
-	$(BIN)/bitcomm train --estimator improved --messages bitwise --out $(RUN)
+	$(BIN)/bitcomm train --estimator improved --messages bitwise --episodes $(EPISODES) --out $(RUN)
 	$(BIN)/bitcomm eval $(RUN) --episodes 2000 --seed 0
 
 test: install

@@ -43,8 +43,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--minibatches", type=int, default=None)
     g.add_argument("--clip", type=float, default=None)
     g.add_argument("--adv-norm", action=argparse.BooleanOptionalAction, default=None)
-    g.add_argument("--goal-coef", type=float, default=None)
-    g.add_argument("--straight-through", action=argparse.BooleanOptionalAction, default=None)
+    g.add_argument("--goal-coef", type=float, default=None, help="privileged goal-grounding loss weight (0: off)")
+    g.add_argument("--seen-coef", type=float, default=None, help="sender grounding loss weight (0: off)")
+    g.add_argument("--channel-noise", type=float, default=None, help="relaxed channel noise; 0: straight-through")
     g.add_argument("--coords", action=argparse.BooleanOptionalAction, default=None)
     g.add_argument("--hidden", type=int, default=None)
     g.add_argument("--message-hidden", type=int, default=None)
@@ -55,7 +56,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 OPTIONS = (
     "mode", "workers", "episodes", "num_envs", "lr", "critic_lr", "gamma", "entropy_move", "entropy_message",
-    "max_grad_norm", "epochs", "minibatches", "clip", "adv_norm", "goal_coef", "straight_through", "coords",
+    "max_grad_norm", "epochs", "minibatches", "clip", "adv_norm", "goal_coef", "seen_coef", "channel_noise",
+    "coords",
     "hidden", "message_hidden", "checkpoint_seconds",
 )  # fmt: skip
 

@@ -122,7 +122,7 @@ RECIPES: dict[str, dict[str, Any]] = {
     ),
     "fast": dict(
         mode="sync",
-        num_envs=128,
+        num_envs=64,
         lr=1e-3,
         epochs=4,
         minibatches=4,
