@@ -6,8 +6,8 @@ import torch
 
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.envs.channel import bits_to_index
-from bitcomm.heads import BitwiseHead, OneHotHead, make_head
 from bitcomm.errors import ConfigError
+from bitcomm.heads import BitwiseHead, OneHotHead, make_head
 from bitcomm.networks import CriticNet, ModelConfig, PolicyNet
 from bitcomm.rollout import Collector
 from bitcomm.train.config import make_train_config
