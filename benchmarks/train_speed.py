@@ -2,8 +2,10 @@
 
 Runs the real trainer (`bitcomm.train.run.train`) on the default task with the default networks
 into a temporary folder, and reads `metrics.csv`: throughput is measured over the batches after the
-warm-up ones (agent-steps played / wall seconds between those rows). torch uses 2 threads in sync
-mode; in a3c mode each of the W workers uses 1. The last line printed is one JSON object.
+warm-up ones (agent-steps played / wall seconds between those rows). torch uses `--threads` (2) threads in
+sync mode; in a3c mode each of the W workers uses 1. On a machine where another process keeps a core
+busy, 2 threads can be many times slower than 1 (the threads wait on each other): compare both.
+The last line printed is one JSON object.
 
     python benchmarks/train_speed.py [--modes sync,a3c] [--recipes paper,fast] [--batches 3]
 """
@@ -60,8 +62,9 @@ def main() -> None:
     ap.add_argument("--batches", type=int, default=3, help="timed batches per worker (x10 for one-episode batches)")
     ap.add_argument("--warmup", type=int, default=1, help="untimed batches per worker (x5 for one-episode batches)")
     ap.add_argument("--workers", type=int, default=2, help="a3c workers")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads in sync mode (default %(default)s)")
     args = ap.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     results = {}
     for recipe in args.recipes.split(","):
         for mode in args.modes.split(","):
@@ -72,7 +75,8 @@ def main() -> None:
                 f"{r['agent_steps_per_s']:>10,.0f} agent-steps/s ({r['agent_steps']} steps in {r['wall_s']} s)",
                 flush=True,
             )
-    print(json.dumps({"benchmark": "train_speed", "task": "default", "torch_threads": 2, "results": results}))
+    summary = {"benchmark": "train_speed", "task": "default", "torch_threads": args.threads, "results": results}
+    print(json.dumps(summary))
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its latest checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument(
         "--eval-episodes", type=int, default=1000, help="final evaluation episodes, 0: none (default %(default)s)"
     )
@@ -66,6 +67,12 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.train.config import make_train_config
     from bitcomm.train.run import resume_config, train
 
+    if args.threads is not None:
+        if args.threads < 1:
+            raise bad_value("threads", args.threads, "must be an integer >= 1")
+        import torch
+
+        torch.set_num_threads(args.threads)
     out = args.out or Path("runs") / f"{args.recipe}-{args.estimator}-{args.messages}-s{args.seed}"
     if args.eval_episodes < 0:
         raise bad_value("eval-episodes", args.eval_episodes, "must be an integer >= 0")
