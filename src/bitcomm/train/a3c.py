@@ -20,6 +20,7 @@ import json
 import queue as queue_mod
 import time
 import traceback
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -82,7 +83,7 @@ class SharedStep:
 
 
 @torch.no_grad()
-def pull(local: list[torch.Tensor], shared: list[torch.Tensor]) -> None:
+def pull(local: Sequence[torch.Tensor], shared: Sequence[torch.Tensor]) -> None:
     for lp, sp in zip(local, shared, strict=True):
         lp.copy_(sp)
 
