@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -133,6 +134,26 @@ def test_eval_json_and_controller(run_dir: Path) -> None:
     ours = evaluate(NetworkPolicy(c.policy, greedy=True), c.task, 100, seed=3)
     assert ours.mean_episode_length == got["mean_episode_length"]
     assert ours.success_rate == got["success_rate"]
+
+    # Controller.act itself, fed the simulator's observations one batch at a time, plays the same
+    def direct(obs: Any) -> tuple[np.ndarray, np.ndarray]:
+        B, n = obs.planes.shape[:2]
+        moves, bits = c.act(obs.planes.reshape(B * n, 2, 4, 4), obs.received.reshape(B * n, -1, 4), greedy=True)
+        return moves.reshape(B, n), bits.reshape(B, n, 4)
+
+    assert evaluate(direct, c.task, 100, seed=3).mean_episode_length == got["mean_episode_length"]
+
+
+def test_controller_sampling_matches_eval(run_dir: Path) -> None:
+    from bitcomm import Controller
+    from bitcomm.agent_policies import BatchedPolicy, ControllerAgent
+    from bitcomm.evaluation import evaluate
+
+    res = bitcomm("eval", str(run_dir), "--episodes", "100", "--seed", "5", "--json")
+    got = json.loads(res.stdout.strip().splitlines()[-1])
+    c = Controller.load(run_dir, seed=5)
+    ours = evaluate(BatchedPolicy(ControllerAgent(c)), c.task, 100, seed=5)
+    assert ours.to_dict() == got
 
 
 @pytest.mark.parametrize(
