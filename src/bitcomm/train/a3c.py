@@ -112,7 +112,11 @@ def _worker(
         local = list(learner.policy.parameters()) + list(learner.critic.parameters())
         remote = list(shared[0].parameters()) + list(shared[1].parameters())
         collector = Collector(cfg.task, cfg.num_envs)
+        parent = mp.parent_process()
         while True:
+            if parent is not None and not parent.is_alive():  # the main process was killed: stop, do not linger
+                results.cancel_join_thread()
+                return
             with lock:
                 if claimed.value >= cfg.episodes:
                     break
