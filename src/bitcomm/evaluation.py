@@ -67,6 +67,17 @@ def play_first_episodes(env: VecGoalExchange, policy: Policy) -> Iterator[FirstE
         active[result.finished.index] = False
 
 
+def seeded_episode_envs(task: TaskConfig, episodes: int, seed: int) -> Iterator[tuple[int, VecGoalExchange]]:
+    """The fixed episode set of `seed`: chunks of up to EVAL_CHUNK fresh slots, with their offsets.
+
+    Slot k's first episode is the set's episode `offset + k`; anything that must play the same
+    episodes as `evaluate` (the UDP deployment, say) takes them from here.
+    """
+    for c, chunk_seed in enumerate(np.random.SeedSequence(seed).spawn(math.ceil(episodes / EVAL_CHUNK))):
+        lo = c * EVAL_CHUNK
+        yield lo, VecGoalExchange(task, min(EVAL_CHUNK, episodes - lo), seed=chunk_seed)
+
+
 def run_first_episodes(
     policy: Policy, task: TaskConfig, episodes: int, seed: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -74,10 +85,7 @@ def run_first_episodes(
     lengths = np.zeros(episodes, dtype=np.int64)
     returns = np.zeros(episodes, dtype=np.float64)
     success = np.zeros(episodes, dtype=bool)
-    chunks = math.ceil(episodes / EVAL_CHUNK)
-    for c, chunk_seed in enumerate(np.random.SeedSequence(seed).spawn(chunks)):
-        lo = c * EVAL_CHUNK
-        env = VecGoalExchange(task, min(EVAL_CHUNK, episodes - lo), seed=chunk_seed)
+    for lo, env in seeded_episode_envs(task, episodes, seed):
         for step in play_first_episodes(env, policy):
             fin = step.result.finished
             first = step.active[fin.index]

@@ -16,7 +16,6 @@ exits or stays silent past the step timeout; everything is bounded by `timeout_s
 
 from __future__ import annotations
 
-import math
 import secrets
 import select
 import socket
@@ -33,8 +32,7 @@ import numpy as np
 from bitcomm.config import TaskConfig
 from bitcomm.deploy.protocol import LineSocket, PeerGone, encode_array, task_to_dict
 from bitcomm.envs.core import N_MOVES, GoalExchangeCore
-from bitcomm.envs.vec import VecGoalExchange
-from bitcomm.evaluation import EVAL_CHUNK, EvalResult
+from bitcomm.evaluation import EvalResult, seeded_episode_envs
 from bitcomm.policy_source import PolicySource
 
 
@@ -70,31 +68,14 @@ class DeployResult:
 
 def episode_set(task: TaskConfig, episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """`(E, n)` starts and goals of the first episodes `evaluate(..., episodes, seed)` plays."""
-    starts, goals = [], []
-    chunks = math.ceil(episodes / EVAL_CHUNK)
-    for c, chunk_seed in enumerate(np.random.SeedSequence(seed).spawn(chunks)):
-        env = VecGoalExchange(task, min(EVAL_CHUNK, episodes - c * EVAL_CHUNK), seed=chunk_seed)
-        starts.append(env.core.pos.copy())
-        goals.append(env.core.goal.copy())
-    return np.concatenate(starts), np.concatenate(goals)
+    envs = [env for _, env in seeded_episode_envs(task, episodes, seed)]
+    return np.concatenate([env.core.pos for env in envs]), np.concatenate([env.core.goal for env in envs])
 
 
 def place_episode(core: GoalExchangeCore, start: np.ndarray, goal: np.ndarray) -> None:
-    """Begin a fresh episode in slot 0 of `core` from the given start and goal cells.
-
-    `reset` clears the step count, return and pending moves; the planes are then redrawn from the
-    given cells with the layout of SPEC section 1 (a test checks it against the env's own planes).
-    """
+    """Begin a fresh episode in slot 0 of `core` from the given start and goal cells."""
     core.reset()
-    S, n = core.cfg.size, core.cfg.n_agents
-    core.pos[0], core.goal[0] = start, goal
-    core.obs[0] = 0
-    core.state[0] = 0
-    for i in range(n):
-        core.obs[0, i, 0][divmod(int(start[i]), S)] = 1
-        core.obs[0, i, 1][divmod(int(goal[core.observed[i]]), S)] = 1
-        core.state[0, i][divmod(int(start[i]), S)] = 1
-        core.state[0, n + i][divmod(int(goal[i]), S)] = 1
+    core.begin(np.zeros(1, dtype=np.int64), start[None], goal[None])
 
 
 class _Agents:

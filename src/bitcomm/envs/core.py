@@ -92,9 +92,13 @@ class GoalExchangeCore:
         if idx.size == 0:
             return
         n, C = self.cfg.n_agents, self.cfg.cells
-        self._draw_planes(idx, 0)
         start = self.rng.integers(0, C, size=(idx.size, n))
         goal = (start + 1 + self.rng.integers(0, C - 1, size=(idx.size, n))) % C  # uniform over cells != start
+        self.begin(idx, start, goal)
+
+    def begin(self, idx: np.ndarray, start: np.ndarray, goal: np.ndarray) -> None:
+        """Start episodes in slots `idx` from given `(len(idx), n)` start and goal cells (no draw)."""
+        self._draw_planes(idx, 0)
         self.pos[idx], self.goal[idx] = start, goal
         self.t[idx] = 0
         self.ep_return[idx] = 0.0
