@@ -1,16 +1,23 @@
 """The `bitcomm` command line. Each subcommand lives in `bitcomm.commands.<name>` and exposes
-`add_parser(subparsers)` and `run(args) -> int`; bad input ends with one line and exit status 2."""
+`add_parser(subparsers)` and `run(args) -> int` and is found by name, so adding a command touches
+no shared list; bad input ends with one line and exit status 2."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import pkgutil
 import sys
 from typing import NoReturn
 
+import bitcomm.commands
 from bitcomm.errors import ConfigError
 
-COMMANDS = ("baseline", "render", "analyze", "deploy", "sweep", "train", "eval")
+
+def command_names() -> list[str]:
+    """Every module of `bitcomm.commands` that defines a subcommand, in alphabetical order."""
+    names = [m.name for m in pkgutil.iter_modules(bitcomm.commands.__path__)]
+    return [n for n in sorted(names) if hasattr(importlib.import_module(f"bitcomm.commands.{n}"), "add_parser")]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -23,7 +30,7 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="bitcomm", description=__doc__.split(".")[0] if __doc__ else None)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    for name in COMMANDS:
+    for name in command_names():
         importlib.import_module(f"bitcomm.commands.{name}").add_parser(sub)
     return parser
 
