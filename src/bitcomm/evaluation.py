@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -99,3 +100,16 @@ def evaluate(policy: Policy, task: TaskConfig, episodes: int = 2000, seed: int =
     if not isinstance(episodes, int) or episodes < 1:
         raise bad_value("episodes", episodes, "must be an integer >= 1")
     return EvalResult.from_episodes(*run_first_episodes(policy, task, episodes, seed))
+
+
+def evaluate_checkpoint(
+    path: str | Path, episodes: int = 2000, seed: int = 0, greedy: bool = False, task: TaskConfig | None = None
+) -> EvalResult:
+    """`evaluate` for a trained policy (run folder or checkpoint file), acting through `Controller` as
+    `bitcomm eval` and a deployed robot do; `task` defaults to the one it was trained on."""
+    from bitcomm.agent_policies import BatchedPolicy, ControllerAgent
+    from bitcomm.controller import Controller
+
+    controller = Controller.load(path, seed=seed)
+    policy = BatchedPolicy(ControllerAgent(controller, greedy=greedy))
+    return evaluate(policy, task or controller.task, episodes, seed)
