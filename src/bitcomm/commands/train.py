@@ -1,8 +1,9 @@
 """`bitcomm train`: learn to act and to talk (SPEC section 5); writes a run folder (see bitcomm.train.run).
 
-Learning options default to None, meaning "the recipe's value" (`--recipe fast|paper`); a flag typed
-on the command line overrides the recipe. `--resume` continues the run in `--out` from its latest
-checkpoint with the config it was started with (only `--episodes`, a new budget, may change).
+Learning options (`bitcomm.commands.learning_flags`, one per plain field of TrainConfig and ModelConfig)
+default to None, meaning "the recipe's value" (`--recipe fast|paper`); a flag typed on the command line
+overrides the recipe. `--resume` continues the run in `--out` from its latest checkpoint with the
+config it was started with (only `--episodes`, a new budget, may change).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import argparse
 from pathlib import Path
 
 from bitcomm.commands.common import add_task_flags, task_from_args
+from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
 from bitcomm.errors import bad_value
 
 
@@ -19,8 +21,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimator", choices=("standard", "improved"), default="improved", help="default %(default)s")
     p.add_argument("--messages", choices=("bitwise", "onehot"), default="bitwise", help="default %(default)s")
     p.add_argument("--recipe", choices=("paper", "fast"), default="fast", help="learning options (default %(default)s)")
-    p.add_argument("--mode", choices=("sync", "a3c"), default=None, help="default: the recipe's")
-    p.add_argument("--workers", type=int, default=None, help="a3c worker processes")
     p.add_argument("--episodes", type=int, default=None, help="budget of environment episodes")
     p.add_argument("--seed", type=int, default=0, help="default %(default)s")
     p.add_argument(
@@ -32,35 +32,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--eval-episodes", type=int, default=1000, help="final evaluation episodes, 0: none (default %(default)s)"
     )
-    g = p.add_argument_group("learning options (default: the recipe's value)")
-    g.add_argument("--num-envs", type=int, default=None, help="episodes per batch (per worker in a3c)")
-    g.add_argument("--lr", type=float, default=None)
-    g.add_argument("--critic-lr", type=float, default=None)
-    g.add_argument("--gamma", type=float, default=None)
-    g.add_argument("--entropy-move", type=float, default=None)
-    g.add_argument("--entropy-message", type=float, default=None)
-    g.add_argument("--max-grad-norm", type=float, default=None)
-    g.add_argument("--epochs", type=int, default=None)
-    g.add_argument("--minibatches", type=int, default=None)
-    g.add_argument("--clip", type=float, default=None)
-    g.add_argument("--adv-norm", action=argparse.BooleanOptionalAction, default=None)
-    g.add_argument("--goal-coef", type=float, default=None, help="privileged goal-grounding loss weight (0: off)")
-    g.add_argument("--seen-coef", type=float, default=None, help="sender grounding loss weight (0: off)")
-    g.add_argument("--channel-noise", type=float, default=None, help="relaxed channel noise; 0: straight-through")
-    g.add_argument("--coords", action=argparse.BooleanOptionalAction, default=None)
-    g.add_argument("--hidden", type=int, default=None)
-    g.add_argument("--message-hidden", type=int, default=None)
-    g.add_argument("--checkpoint-seconds", type=float, default=None, help="checkpoint at most this often")
+    add_learning_flags(p)
     add_task_flags(p)
     p.set_defaults(run=run)
-
-
-OPTIONS = (
-    "mode", "workers", "episodes", "num_envs", "lr", "critic_lr", "gamma", "entropy_move", "entropy_message",
-    "max_grad_norm", "epochs", "minibatches", "clip", "adv_norm", "goal_coef", "seen_coef", "channel_noise",
-    "coords",
-    "hidden", "message_hidden", "checkpoint_seconds",
-)  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -81,10 +55,14 @@ def run(args: argparse.Namespace) -> int:
             raise bad_value("episodes", args.episodes, "must be an integer >= 1")
         cfg = resume_config(out, args.episodes)
     else:
-        overrides = {name: getattr(args, name) for name in OPTIONS}
-        task = task_from_args(args)
         cfg = make_train_config(
-            args.recipe, task, estimator=args.estimator, messages=args.messages, seed=args.seed, **overrides
+            args.recipe,
+            task_from_args(args),
+            estimator=args.estimator,
+            messages=args.messages,
+            seed=args.seed,
+            episodes=args.episodes,
+            **learning_overrides(args),
         )
     print(f"run folder: {out}", flush=True)
     checkpoint = train(cfg, out, resume=args.resume, progress=not args.quiet)

@@ -1,0 +1,59 @@
+"""Learning flags are the plain fields of TrainConfig and ModelConfig: read from the source, they agree with
+`dataclasses.fields`, cover every recipe key, default to "the recipe's value" and reach the config."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import typing
+
+import pytest
+
+from bitcomm.commands.learning_flags import STRUCTURAL, add_learning_flags, learning_options, learning_overrides
+from bitcomm.errors import ConfigError
+from bitcomm.networks import ModelConfig
+from bitcomm.train.config import RECIPES, TrainConfig, make_train_config
+
+
+def plain_fields(cls: type) -> dict[str, type]:
+    hints = typing.get_type_hints(cls)
+    out = {}
+    for f in dataclasses.fields(cls):
+        kind = hints[f.name]
+        args = [a for a in typing.get_args(kind) if a is not type(None)]
+        kind = args[0] if len(args) == 1 else kind  # X | None -> X
+        if kind in (int, float, bool, str) and f.name not in STRUCTURAL:
+            out[f.name] = kind
+    return out
+
+
+def test_every_plain_field_is_a_flag_of_its_type() -> None:
+    expected = {**plain_fields(TrainConfig), **plain_fields(ModelConfig)}
+    assert {name: o.kind for name, o in learning_options().items()} == expected
+    assert {k for recipe in RECIPES.values() for k in recipe} <= set(expected)
+    assert {"lr", "num_envs", "adv_norm", "coords", "hidden", "checkpoint_seconds", "mode"} <= set(expected)
+    assert learning_options()["epochs"].help == "Passes over each batch (PPO-style reuse when > 1)."
+
+
+def parse(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_learning_flags(parser)
+    return parser.parse_args(argv)
+
+
+def test_flags_default_to_the_recipe_and_override_it() -> None:
+    assert learning_overrides(parse()) == {}
+    given = learning_overrides(parse("--num-envs", "16", "--lr", "3e-4", "--no-coords", "--adv-norm", "--mode", "a3c"))
+    assert given == {"num_envs": 16, "lr": 3e-4, "coords": False, "adv_norm": True, "mode": "a3c"}
+    cfg = make_train_config("fast", **given)
+    assert (cfg.num_envs, cfg.lr, cfg.model.coords, cfg.mode) == (16, 3e-4, False, "a3c")
+    assert make_train_config("fast", **learning_overrides(parse())) == make_train_config("fast")
+
+
+def test_parse_one_value() -> None:
+    options = learning_options()
+    assert options["coords"].parse("false") is False and options["adv_norm"].parse("1") is True
+    assert options["epochs"].parse("3") == 3 and options["lr"].parse("1e-3") == 1e-3
+    for name, text in (("epochs", "1.5"), ("lr", "fast"), ("coords", "maybe")):
+        with pytest.raises(ConfigError, match=name):
+            options[name].parse(text)
