@@ -22,6 +22,7 @@ from bitcomm.config import TaskConfig
 from bitcomm.envs.channel import bits_to_index, index_to_bits
 from bitcomm.envs.core import N_MOVES
 from bitcomm.envs.vec import Observation
+from bitcomm.errors import ConfigError
 from bitcomm.policies import OraclePolicy, step_toward
 
 
@@ -33,6 +34,25 @@ class AgentPolicy(Protocol):
     def act(
         self, planes: np.ndarray, received: np.ndarray, t: np.ndarray, agent: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def agent_batch(planes: np.ndarray, received: np.ndarray, task: TaskConfig) -> tuple[np.ndarray, np.ndarray, bool]:
+    """`(planes (N, 2, S, S), received (N, slots, K), single)` from the inputs of one agent or of N agents.
+
+    `single` says a leading axis was added (one agent's `(2, S, S)` and `(slots, K)`), so a controller
+    can answer in the shape it was asked; shapes that fit neither stop with one error line.
+    """
+    planes, received = np.asarray(planes), np.asarray(received)
+    single = planes.ndim == 3
+    if single:
+        planes, received = planes[None], received[None]
+    S, K, slots = task.env.size, task.channel.bits, task.slots
+    if planes.shape[1:] != (2, S, S) or received.shape[1:] != (slots, K) or planes.shape[0] != received.shape[0]:
+        raise ConfigError(
+            f"invalid input shapes planes={planes.shape}, received_bits={received.shape}: "
+            f"expected (N, 2, {S}, {S}) and (N, {slots}, {K}) (or without N for one agent)"
+        )
+    return planes, received, single
 
 
 class OracleAgent:

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from bitcomm.agent import act
+from bitcomm.agent_policies import agent_batch
 from bitcomm.checkpoint import load_weights
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
@@ -74,16 +75,7 @@ class Controller:
         generator: torch.Generator | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """`(move, message_bits)`: int64 `()` and uint8 `(K,)` for one agent, `(N,)` and `(N, K)` for a batch."""
-        planes, received = np.asarray(planes), np.asarray(received_bits)
-        single = planes.ndim == 3
-        if single:
-            planes, received = planes[None], received[None]
-        S, K, slots = self.task.env.size, self.task.channel.bits, self.task.slots
-        if planes.shape[1:] != (2, S, S) or received.shape[1:] != (slots, K) or planes.shape[0] != received.shape[0]:
-            raise ConfigError(
-                f"invalid input shapes planes={planes.shape}, received_bits={received.shape}: "
-                f"expected (N, 2, {S}, {S}) and (N, {slots}, {K}) (or without N for one agent)"
-            )
+        planes, received, single = agent_batch(planes, received_bits, self.task)
         moves, bits, _, _ = act(
             self.policy,
             torch.from_numpy(np.ascontiguousarray(planes, dtype=np.uint8)),

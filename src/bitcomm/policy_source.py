@@ -1,4 +1,5 @@
-"""Where a command's policy comes from: a reference policy (`--policy oracle|random`) or a learned RUN.
+"""Where a command's policy comes from: a reference policy (`--policy oracle|random`), a learned RUN, or a
+learned policy exported to ONNX (`--onnx FILE`, run by onnxruntime: see `bitcomm.onnx_policy`).
 
 This module is the one place that turns command-line arguments into an `AgentPolicy` and the task it
 runs on, for `bitcomm render`, `analyze`, `deploy` and `sweep`. A learned policy is loaded through
@@ -107,39 +108,53 @@ def load_controller(run: str) -> Any:
 
 @dataclass(frozen=True)
 class PolicySource:
-    """A per-agent policy to build: `name` is a reference policy, or "run" with `run` a path."""
+    """A per-agent policy to build: `name` is a reference policy, "run" with `run` a path, or "onnx"
+    with `onnx` a file written by `bitcomm export`."""
 
     name: str = "oracle"
     run: str | None = None
     greedy: bool = False
     """Learned policies only: most likely move and message instead of sampling (how they were trained)."""
+    onnx: str | None = None
+    """An ONNX file written by `bitcomm export`, for `name="onnx"`: agents need onnxruntime, not torch."""
 
     def __post_init__(self) -> None:
         if self.name == "run" and not self.run:
             raise bad_value("RUN", self.run, "a run folder or checkpoint file is needed")
-        if self.name != "run" and self.name not in REFERENCE_POLICIES:
+        if self.name == "onnx" and not self.onnx:
+            raise bad_value("onnx", self.onnx, "an ONNX file written by bitcomm export is needed")
+        if self.name not in ("run", "onnx") and self.name not in REFERENCE_POLICIES:
             raise bad_value("policy", self.name, f"choose one of {', '.join(REFERENCE_POLICIES)}, or give RUN")
 
     @property
     def label(self) -> str:
-        return self.run if self.name == "run" and self.run else self.name
+        return {"run": self.run, "onnx": self.onnx}.get(self.name) or self.name
 
     def base_task(self) -> TaskConfig:
-        """The task the policy belongs to: its training task for a run, the paper's defaults otherwise."""
+        """The task the policy belongs to: its training task for a learned one, the paper's defaults otherwise."""
         if self.name == "run":
             return load_controller(self.run).task  # type: ignore[no-any-return]
+        if self.name == "onnx":
+            from bitcomm.onnx_policy import OnnxController
+
+            return OnnxController.load(str(self.onnx)).task
         return TaskConfig()
 
     def task_from_args(self, args: argparse.Namespace) -> TaskConfig:
         """The task to run: `base_task()` changed by the task flags the user gave."""
-        return resolve_task(args, self.base_task(), label=f"RUN {self.run!r}", strict=self.name == "run")
+        learned = self.name in ("run", "onnx")
+        return resolve_task(args, self.base_task(), label=f"{self.name.upper()} {self.label!r}", strict=learned)
 
     def build(self, task: TaskConfig, seed: int | np.random.SeedSequence | None = None) -> AgentPolicy:
-        """The policy, for `task`; `seed` drives a random policy's draws."""
+        """The policy, for `task`; `seed` drives a random policy's draws and an ONNX policy's sampling."""
         if self.name == "oracle":
             return OracleAgent(task)
         if self.name == "random":
             return RandomAgent(task, seed)
+        if self.name == "onnx":
+            from bitcomm.onnx_policy import OnnxController
+
+            return ControllerAgent(OnnxController.load(str(self.onnx), seed=0 if seed is None else seed), self.greedy)
         return ControllerAgent(load_controller(self.run), greedy=self.greedy)
 
     def to_dict(self) -> dict[str, Any]:
@@ -150,10 +165,11 @@ class PolicySource:
         return cls(**data)
 
 
-def add_policy_flags(parser: argparse.ArgumentParser, several: bool = False) -> None:
+def add_policy_flags(parser: argparse.ArgumentParser, several: bool = False, onnx: bool = False) -> None:
     """RUN (optional positional), `--policy` and `--greedy`; call after `add_task_flags`.
 
     `several`: `--policy` may repeat and adds to RUN (for comparisons); otherwise it is RUN or one name.
+    `onnx`: also `--onnx FILE`, a policy exported by `bitcomm export` (instead of RUN or `--policy`).
     """
     parser.add_argument(
         "run_path", nargs="?", default=None, metavar="RUN", help="run folder or checkpoint file of a learned policy"
@@ -167,20 +183,29 @@ def add_policy_flags(parser: argparse.ArgumentParser, several: bool = False) -> 
         parser.add_argument(
             "--policy", choices=REFERENCE_POLICIES, default=None, help="reference policy (default: oracle when no RUN)"
         )
+    if onnx:
+        parser.add_argument(
+            "--onnx", metavar="FILE", default=None, help="policy exported by bitcomm export, run with onnxruntime"
+        )
     parser.add_argument("--greedy", action="store_true", help="learned policies: most likely move and message")
     mark_task_defaults(parser)
 
 
 def sources_from_args(args: argparse.Namespace) -> list[PolicySource]:
-    """Every policy named on the command line: RUN first, then each `--policy` (oracle if none)."""
+    """Every policy named on the command line: RUN first, `--onnx`, then each `--policy` (oracle if none)."""
     names = args.policy if isinstance(args.policy, list) else ([args.policy] if args.policy else [])
     sources = [PolicySource("run", args.run_path, args.greedy)] if args.run_path else []
+    if getattr(args, "onnx", None):
+        sources.append(PolicySource("onnx", greedy=args.greedy, onnx=args.onnx))
     sources += [PolicySource(name, None, args.greedy) for name in dict.fromkeys(names)]
     return sources or [PolicySource("oracle")]
 
 
 def source_from_args(args: argparse.Namespace) -> PolicySource:
-    """The one policy of a command that runs one: RUN or `--policy`, not both."""
-    if args.run_path and args.policy:
-        raise bad_value("policy", args.policy, "give either RUN or --policy, not both")
+    """The one policy of a command that runs one: RUN, `--policy` or `--onnx`, not two of them."""
+    given = {"RUN": args.run_path, "policy": args.policy, "onnx": getattr(args, "onnx", None)}
+    named = [flag for flag, value in given.items() if value]
+    if len(named) > 1:
+        either = "RUN, --policy or --onnx" if "onnx" in args else "RUN or --policy"
+        raise bad_value(named[1], given[named[1]], f"give either {either}, not both")
     return sources_from_args(args)[0]

@@ -1,4 +1,5 @@
-"""`bitcomm deploy [RUN]`: one process per agent, messages as UDP datagrams on loopback (see `bitcomm.deploy`)."""
+"""`bitcomm deploy [RUN | --onnx FILE]`: one process per agent, messages as UDP datagrams on loopback (see
+`bitcomm.deploy`). With `--onnx`, each agent process holds only its own onnxruntime session (no torch)."""
 
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--timeout", type=float, default=300.0, help="bound on the whole run, seconds (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print one JSON object (episode lines go to stderr)")
     add_task_flags(p)
-    add_policy_flags(p)
+    add_policy_flags(p, onnx=True)
     p.set_defaults(run=run)
 
 

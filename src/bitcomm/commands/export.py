@@ -1,0 +1,48 @@
+"""`bitcomm export RUN --onnx FILE`: the policy network as ONNX, for robots without PyTorch.
+
+RUN is a run folder or a checkpoint file, as for `bitcomm eval`. FILE gets the graph (inputs `planes`,
+`received`; outputs `move_logits`, `message_logits`; dynamic batch axis) and `FILE.json` its card;
+`bitcomm deploy --onnx FILE` and `bitcomm.onnx_policy.OnnxController` run it (see `bitcomm.onnx_export`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from bitcomm.errors import bad_value
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export", help="export a trained policy network to ONNX (run folder or checkpoint file)")
+    p.add_argument("run_path", metavar="RUN_OR_CHECKPOINT", help="run folder or .safetensors file")
+    p.add_argument("--onnx", required=True, metavar="FILE", help="ONNX file to write (its card goes to FILE.json)")
+    p.set_defaults(run=run)
+
+
+def _check_output(path: Path) -> None:
+    """Refuse, before any work, an output that cannot be written."""
+    if path.is_dir():
+        raise bad_value("onnx", str(path), "is a folder; give a file name such as policy.onnx")
+    if not path.parent.is_dir():
+        raise bad_value("onnx", str(path), f"its folder {str(path.parent)!r} does not exist")
+
+
+def run(args: argparse.Namespace) -> int:
+    from bitcomm.controller import Controller
+    from bitcomm.onnx_export import export_onnx
+    from bitcomm.onnx_policy import require, sidecar_path
+
+    out = Path(args.onnx)
+    _check_output(out)
+    require("onnx")
+    controller = Controller.load(args.run_path)
+    try:
+        card = export_onnx(controller, out)
+    except OSError as err:
+        raise bad_value("onnx", str(out), f"cannot be written ({err.strerror or err})") from None
+    print(
+        f"wrote {out} and {sidecar_path(out)}: {card['size']}x{card['size']} grid, {card['bits']} bits, "
+        f"{card['slots']} slot(s), {card['messages']} messages, from {card['checkpoint']}"
+    )
+    return 0

@@ -1,0 +1,95 @@
+"""Export a trained policy network to ONNX, for robots that run onnxruntime instead of PyTorch.
+
+The graph is `PolicyNet.forward` as `Controller` runs it (coordinate planes and the message head's
+reading of the received bits included), with a dynamic batch axis; see `bitcomm.onnx_policy` for its
+inputs, outputs and how to sample from them. The card a robot needs (task, head, tensor names and
+shapes, bitcomm version, source checkpoint) goes into the model's metadata and into a JSON sidecar.
+
+The exporter is PyTorch's TorchScript-based one (`dynamo=False`): it needs nothing beyond the `onnx`
+extra, works on every torch this package accepts, and takes milliseconds; the `torch.export`-based
+default would add `onnxscript` and seconds per export for the same graph of convolutions and linears.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from bitcomm.controller import Controller
+from bitcomm.deploy.protocol import task_to_dict
+from bitcomm.envs.core import MOVE_NAMES
+from bitcomm.onnx_policy import FORMAT, INPUTS, METADATA_KEY, OUTPUTS, VERSION, require, sidecar_path
+
+OPSET = 17  # onnxruntime >= 1.14 runs it; the graph needs nothing newer
+
+
+def policy_card(controller: Controller) -> dict[str, Any]:
+    """What a robot needs to feed the exported graph and read its outputs, and where it came from."""
+    import bitcomm
+
+    task, head = controller.task, controller.policy.head
+    S, K, slots = task.env.size, task.channel.bits, task.slots
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "bitcomm_version": bitcomm.__version__,
+        "checkpoint": str(controller.info.get("path", "")),
+        "episodes_trained": controller.info.get("episodes"),
+        "size": S,
+        "agents": task.env.n_agents,
+        "bits": K,
+        "slots": slots,
+        "messages": head.name,
+        "moves": list(MOVE_NAMES),
+        "inputs": {INPUTS[0]: ["N", 2, S, S], INPUTS[1]: ["N", slots, K]},
+        "outputs": {OUTPUTS[0]: ["N", len(MOVE_NAMES)], OUTPUTS[1]: ["N", head.out_features]},
+        "opset": OPSET,
+        "task": task_to_dict(task),
+    }
+
+
+def write_graph(controller: Controller, path: Path) -> None:
+    """The policy network, bare (no card), as ONNX at `path`, batch axis `N` dynamic."""
+    task = controller.task
+    example = (torch.zeros(1, 2, task.env.size, task.env.size), torch.zeros(1, task.slots, task.channel.bits))
+    with warnings.catch_warnings():
+        # the TorchScript exporter is chosen on purpose (module docstring), so its deprecation notices are
+        # noise here; the tracer's "torch.tensor ... registered as constants" is about the powers of two
+        # that read bits as a message index, which are constants for a given K
+        warnings.filterwarnings("ignore", message=".*TorchScript-based ONNX export", category=DeprecationWarning)
+        warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\.onnx\._internal\.torchscript")
+        warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
+        torch.onnx.export(
+            controller.policy.eval(),
+            example,
+            str(path),
+            dynamo=False,
+            opset_version=OPSET,
+            input_names=list(INPUTS),
+            output_names=list(OUTPUTS),
+            dynamic_axes={name: {0: "N"} for name in INPUTS + OUTPUTS},
+        )
+
+
+def export_onnx(controller: Controller, path: str | Path) -> dict[str, Any]:
+    """Write `path` (the graph, its card in the metadata) and `<path>.json` (the card); returns the card."""
+    onnx = require("onnx")
+    card = policy_card(controller)
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:  # renamed into place once whole: a robot never loads half a file
+        write_graph(controller, tmp)
+        model = onnx.load(str(tmp))
+        model.metadata_props.add(key=METADATA_KEY, value=json.dumps(card))
+        onnx.checker.check_model(model)
+        onnx.save(model, str(tmp))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    sidecar_path(path).write_text(json.dumps(card, indent=2) + "\n")
+    return card

@@ -1,0 +1,134 @@
+"""`OnnxController`: a policy exported by `bitcomm export`, run by onnxruntime with numpy, no torch needed.
+
+    controller = OnnxController.load("policy.onnx")
+    move, bits = controller.act(planes, received_bits)               # as `bitcomm.Controller.act`
+
+The ONNX graph is the policy network only: `planes` float32 `(N, 2, S, S)` and `received` float32
+`(N, slots, K)` bits in, `move_logits` `(N, 5)` and `message_logits` `(N, K)` (bitwise) or
+`(N, 2^K)` (onehot) out. Sampling stays outside the graph, here, drawing from the same distributions
+`bitcomm.agent.act` draws from: a move from softmax(move_logits); for bitwise messages each bit with
+probability sigmoid(logit); for onehot messages an index from softmax(message_logits), sent as its K bits
+(most significant first). What a robot needs to use the file (grid size, bits, slots, head, tensor
+names, provenance) is stored in the model's metadata under `bitcomm` and in a JSON sidecar
+(`policy.onnx.json`), both written by `bitcomm.onnx_export`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bitcomm.agent_policies import agent_batch
+from bitcomm.config import TaskConfig
+from bitcomm.deploy.protocol import task_from_dict
+from bitcomm.envs.channel import index_to_bits
+from bitcomm.errors import ConfigError
+
+FORMAT = "bitcomm-onnx-policy"
+VERSION = 1
+METADATA_KEY = "bitcomm"
+INPUTS = ("planes", "received")
+OUTPUTS = ("move_logits", "message_logits")
+INSTALL_HINT = "pip install bitcomm[onnx]"
+
+
+def require(module: str) -> Any:
+    """Import an optional dependency of the `onnx` extra, or stop with one line saying how to get it."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise ConfigError(f"{module} is not installed: {INSTALL_HINT}") from None
+
+
+def sidecar_path(onnx_path: str | Path) -> Path:
+    """Where the JSON card of an exported policy lives: next to it, `<file>.json`."""
+    p = Path(onnx_path)
+    return p.with_name(p.name + ".json")
+
+
+# ---------------------------------------------------------------------- sampling, as bitcomm.agent.act
+def _softmax(logits: np.ndarray) -> np.ndarray:
+    e = np.exp(logits - logits.max(-1, keepdims=True))
+    return e / e.sum(-1, keepdims=True)  # type: ignore[no-any-return]
+
+
+def _categorical(logits: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One index per row, drawn from softmax(logits) by inverting its CDF."""
+    cdf = np.cumsum(_softmax(logits.astype(np.float64)), -1)
+    u = rng.random((logits.shape[0], 1))
+    return np.minimum((cdf < u).sum(-1), logits.shape[-1] - 1).astype(np.int64)  # type: ignore[no-any-return]
+
+
+def _message_bits(kind: str, logits: np.ndarray, bits: int, greedy: bool, rng: np.random.Generator) -> np.ndarray:
+    """`(N, K)` uint8 bits from message logits, as `bitcomm.heads` mode/sample do."""
+    if kind == "bitwise":
+        if greedy:
+            return (logits > 0).astype(np.uint8)
+        p_one = 0.5 * (1.0 + np.tanh(0.5 * logits.astype(np.float64)))  # sigmoid, without overflow
+        return (rng.random(logits.shape) < p_one).astype(np.uint8)
+    index = logits.argmax(-1) if greedy else _categorical(logits, rng)
+    return index_to_bits(index, bits)
+
+
+class OnnxController:
+    """An exported policy network in an onnxruntime session, acting for any agent of its task."""
+
+    def __init__(self, session: Any, metadata: dict[str, Any], seed: int | np.random.SeedSequence | None = 0) -> None:
+        self.session = session
+        self.metadata = metadata
+        """The policy card written by `bitcomm export` (also in the `.json` sidecar)."""
+        self.task: TaskConfig = task_from_dict(metadata["task"])
+        self.messages: str = metadata["messages"]
+        self.rng = np.random.default_rng(seed)
+
+    @classmethod
+    def load(cls, path: str | Path, seed: int | np.random.SeedSequence | None = 0, threads: int = 1) -> OnnxController:
+        """From a `.onnx` file written by `bitcomm export`; `seed` drives sampling, `threads` onnxruntime."""
+        ort = require("onnxruntime")
+        if not Path(path).is_file():
+            raise ConfigError(f"invalid onnx={str(path)!r}: no such file")
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = options.inter_op_num_threads = threads
+        try:
+            session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        except Exception as err:  # onnxruntime raises its own error types for unreadable models
+            raise ConfigError(f"invalid onnx={str(path)!r}: not an ONNX model ({type(err).__name__})") from None
+        card = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+        try:
+            metadata = json.loads(card) if card else {}
+        except ValueError:
+            metadata = {}
+        if metadata.get("format") != FORMAT:
+            raise ConfigError(f"invalid onnx={str(path)!r}: no bitcomm policy card in it (made by bitcomm export?)")
+        if int(metadata.get("version", -1)) > VERSION:
+            raise ConfigError(
+                f"invalid onnx={str(path)!r}: format version {metadata['version']} is newer than this bitcomm reads"
+            )
+        names = tuple(i.name for i in session.get_inputs()), tuple(o.name for o in session.get_outputs())
+        if names != (INPUTS, OUTPUTS):
+            raise ConfigError(f"invalid onnx={str(path)!r}: tensors {names} are not {(INPUTS, OUTPUTS)}")
+        return cls(session, metadata, seed)
+
+    def logits(self, planes: np.ndarray, received_bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`(move_logits (N, 5), message_logits (N, out))` for a batch of N agents."""
+        move, message = self.session.run(
+            list(OUTPUTS),
+            {
+                "planes": np.ascontiguousarray(planes, dtype=np.float32),
+                "received": np.ascontiguousarray(received_bits, dtype=np.float32),
+            },
+        )
+        return move, message
+
+    def act(self, planes: np.ndarray, received_bits: np.ndarray, greedy: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """`(move, message_bits)`: int64 `()` and uint8 `(K,)` for one agent, `(N,)` and `(N, K)` for a batch."""
+        planes, received, single = agent_batch(planes, received_bits, self.task)
+        move_logits, message_logits = self.logits(planes, received)
+        moves = move_logits.argmax(-1).astype(np.int64) if greedy else _categorical(move_logits, self.rng)
+        bits = _message_bits(self.messages, message_logits, self.task.channel.bits, greedy, self.rng)
+        return (moves[0], bits[0]) if single else (moves, bits)

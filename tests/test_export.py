@@ -1,0 +1,216 @@
+"""`bitcomm export --onnx`: onnxruntime's logits are PyTorch's, `OnnxController` plays as `Controller`
+(greedy: the same actions; sampling: the same distributions), the file carries its card, `bitcomm deploy
+--onnx` plays it over UDP as the simulator does, and bad input is one line with exit status 2."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from bitcomm.checkpoint import save_checkpoint
+from bitcomm.cli import main
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.controller import Controller
+from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.errors import ConfigError
+from bitcomm.networks import PolicyNet
+from bitcomm.onnx_export import export_onnx
+from bitcomm.onnx_policy import OnnxController, sidecar_path
+
+TINY = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
+# agent 0 hears agents 1 and 2: two input slots
+TWO_SLOTS = TaskConfig(
+    EnvConfig(size=5, n_agents=3, max_steps=16), ChannelConfig(bits=4, recipients=((2,), (0,), (0,)))
+)
+ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
+
+
+def make_checkpoint(folder: Path, task: TaskConfig = TINY, messages: str = "bitwise", coords: bool = False) -> Path:
+    """A run folder with one checkpoint of an untrained policy, written by the trainer's own writer."""
+    from bitcomm.train.config import make_train_config
+
+    cfg = make_train_config("fast", task, messages=messages, coords=coords)
+    torch.manual_seed(0)
+    net = PolicyNet(task, cfg.model)
+    with torch.no_grad():  # larger weights than at initialisation: logits far apart, as after training
+        for p in net.parameters():
+            p.mul_(3.0)
+    save_checkpoint(folder, cfg.to_dict(), {"policy": net.state_dict()}, episodes=16, batches=1, state={})
+    return folder
+
+
+def random_inputs(task: TaskConfig, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    S, K = task.env.size, task.channel.bits
+    return rng.random((n, 2, S, S), dtype=np.float32), rng.integers(0, 2, (n, task.slots, K)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(run folder, its exported .onnx) of a bitwise policy on the 4x4 task."""
+    run = make_checkpoint(tmp_path_factory.mktemp("export") / "run")
+    out = run.parent / "policy.onnx"
+    export_onnx(Controller.load(run), out)
+    return run, out
+
+
+@pytest.mark.parametrize(
+    ("messages", "coords", "task"),
+    [("bitwise", False, TINY), ("onehot", False, TINY), ("bitwise", True, TINY), ("onehot", True, TWO_SLOTS)],
+)
+def test_onnx_logits_equal_pytorch(tmp_path: Path, messages: str, coords: bool, task: TaskConfig) -> None:
+    controller = Controller.load(make_checkpoint(tmp_path / "run", task, messages, coords))
+    export_onnx(controller, tmp_path / "policy.onnx")
+    onnx = OnnxController.load(tmp_path / "policy.onnx")
+    planes, received = random_inputs(task, 37)  # not the batch size of the export: the batch axis is dynamic
+    move, message = onnx.logits(planes, received)
+    with torch.no_grad():
+        torch_move, torch_message = controller.policy(torch.from_numpy(planes), torch.from_numpy(received))
+    out = task.channel.bits if messages == "bitwise" else 1 << task.channel.bits
+    assert move.shape == (37, 5) and message.shape == (37, out)
+    np.testing.assert_allclose(move, torch_move.numpy(), rtol=0, atol=1e-5)
+    np.testing.assert_allclose(message, torch_message.numpy(), rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("messages", ["bitwise", "onehot"])
+def test_greedy_actions_equal_the_controllers(tmp_path: Path, messages: str) -> None:
+    run = make_checkpoint(tmp_path / "run", messages=messages)
+    export_onnx(Controller.load(run), tmp_path / "policy.onnx")
+    controller, onnx = Controller.load(run), OnnxController.load(tmp_path / "policy.onnx")
+    env = VecGoalExchange(TINY, 64, seed=0)  # observations as the environment gives them (uint8)
+    obs = env.observe()
+    planes, received = obs.planes.reshape(-1, 2, 4, 4), obs.received.reshape(-1, 1, 4)
+    received = np.random.default_rng(1).integers(0, 2, received.shape).astype(np.uint8)
+    ours, theirs = onnx.act(planes, received, greedy=True), controller.act(planes, received, greedy=True)
+    for a, b in zip(ours, theirs, strict=True):  # moves, then message bits
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    move, bits = onnx.act(planes[0], received[0], greedy=True)  # one agent: no batch axis
+    assert move.shape == () and bits.shape == (4,) and bits.dtype == np.uint8
+    with pytest.raises(ConfigError, match="expected"):
+        onnx.act(planes[:, :, :3], received)
+
+
+@pytest.mark.parametrize("messages", ["bitwise", "onehot"])
+def test_sampling_follows_the_policy_distribution(tmp_path: Path, messages: str) -> None:
+    run = make_checkpoint(tmp_path / "run", messages=messages)
+    export_onnx(Controller.load(run), tmp_path / "policy.onnx")
+    onnx = OnnxController.load(tmp_path / "policy.onnx", seed=3)
+    planes, received = random_inputs(TINY, 1)
+    draws = 4000
+    moves, bits = onnx.act(np.repeat(planes, draws, 0), np.repeat(received, draws, 0))
+    move_logits, message_logits = (torch.from_numpy(x[0]) for x in onnx.logits(planes, received))
+    p_move = torch.softmax(move_logits, -1).numpy()
+    np.testing.assert_allclose(np.bincount(moves, minlength=5) / draws, p_move, atol=0.03)
+    if messages == "bitwise":
+        np.testing.assert_allclose(bits.mean(0), torch.sigmoid(message_logits).numpy(), atol=0.03)
+    else:
+        index = bits.astype(np.int64) @ (1 << np.arange(3, -1, -1))  # bit 0 most significant
+        p_message = torch.softmax(message_logits, -1).numpy()
+        np.testing.assert_allclose(np.bincount(index, minlength=16) / draws, p_message, atol=0.03)
+
+
+def test_the_file_carries_its_card(exported: tuple[Path, Path]) -> None:
+    run, out = exported
+    onnx = OnnxController.load(out)
+    card = json.loads(sidecar_path(out).read_text())
+    assert card == onnx.metadata
+    assert (card["size"], card["bits"], card["slots"], card["messages"], card["agents"]) == (4, 4, 1, "bitwise", 2)
+    assert card["inputs"] == {"planes": ["N", 2, 4, 4], "received": ["N", 1, 4]}
+    assert card["outputs"] == {"move_logits": ["N", 5], "message_logits": ["N", 4]}
+    assert card["checkpoint"] == str(run / "checkpoints" / "ckpt_000000016.safetensors")
+    assert card["episodes_trained"] == 16 and card["bitcomm_version"]
+    assert onnx.task == TINY
+    inputs = {i.name: i.shape for i in onnx.session.get_inputs()}
+    assert inputs == {"planes": ["N", 2, 4, 4], "received": ["N", 1, 4]}
+
+
+def test_the_runtime_needs_no_torch(exported: tuple[Path, Path]) -> None:
+    code = (
+        "import sys, numpy as np; from bitcomm.onnx_policy import OnnxController; "
+        f"c = OnnxController.load({str(exported[1])!r}); "
+        "print(c.act(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 4), np.uint8))[1].shape, 'torch' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["(4,)", "False"]
+
+
+def test_cli_exports_a_run_folder(exported: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    run, reference = exported
+    out = tmp_path / "cli.onnx"
+    assert main(["export", str(run), "--onnx", str(out)]) == 0
+    assert str(out) in capsys.readouterr().out
+    assert out.stat().st_size > 0 and sidecar_path(out).is_file()
+    planes, received = random_inputs(TINY, 5)
+    got = OnnxController.load(out).logits(planes, received)
+    expected = OnnxController.load(reference).logits(planes, received)
+    for a, b in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_deploy_runs_the_exported_policy(exported: tuple[Path, Path]) -> None:
+    from bitcomm.evaluation import evaluate_checkpoint
+
+    run, out = exported
+    cmd = [sys.executable, "-m", "bitcomm.cli", "deploy", "--onnx", str(out), "--greedy", "--episodes", "12",
+           "--seed", "2", "--deadline-ms", "200", "--json", "--timeout", "60"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=90)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    # greedy and nothing lost on the wire: the ONNX agents over UDP, the ONNX policy in the simulator and
+    # the torch policy it was exported from play the same episodes step for step (returns included)
+    expected = evaluate_checkpoint(run, episodes=12, seed=2, greedy=True).to_dict()
+    assert {key: result[key] for key in expected} == expected
+    assert {key: result["simulator"][key] for key in expected} == expected
+    assert result["network"]["missing"] == 0 and result["network"]["sent"] > 0
+
+
+def _bad_onnx(tmp_path: Path) -> Path:
+    bad = tmp_path / "not.onnx"
+    bad.write_bytes(b"not an onnx model")
+    return bad
+
+
+@pytest.mark.parametrize(
+    ("argv", "named"),
+    [
+        (["export", "{missing}", "--onnx", "{out}"], "checkpoint"),
+        (["export", "{run}", "--onnx", "{tmp}/no/such/folder/p.onnx"], "onnx"),
+        (["export", "{run}", "--onnx", "{tmp}"], "onnx"),
+        (["export", "{run}"], "--onnx"),
+        (["deploy", "--onnx", "{missing}"], "onnx"),
+        (["deploy", "--onnx", "{bad}"], "onnx"),
+        (["deploy", "--onnx", "{out}", "--policy", "oracle"], "onnx"),
+        (["deploy", "--onnx", "{reference}", "--size", "5"], "size"),
+    ],
+)
+def test_bad_input_is_one_line(
+    argv: list[str], named: str, exported: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    run, reference = exported
+    paths = {"missing": tmp_path / "nope", "out": tmp_path / "p.onnx", "run": run, "tmp": tmp_path,
+             "bad": _bad_onnx(tmp_path), "reference": reference}  # fmt: skip
+    rc: int | str | None
+    try:
+        rc = main([a.format(**paths) for a in argv])
+    except SystemExit as e:  # argparse
+        rc = e.code
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert named in err
+    assert not (tmp_path / "p.onnx").exists()
+
+
+def test_missing_onnxruntime_says_how_to_install(exported: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import fails as if not installed
+    with pytest.raises(ConfigError, match=r"pip install bitcomm\[onnx\]"):
+        OnnxController.load(exported[1])
