@@ -12,6 +12,7 @@ default would add `onnxscript` and seconds per export for the same graph of conv
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import warnings
@@ -57,6 +58,8 @@ def write_graph(controller: Controller, path: Path) -> None:
     """The policy network, bare (no card), as ONNX at `path`, batch axis `N` dynamic."""
     task = controller.task
     example = (torch.zeros(1, 2, task.env.size, task.env.size), torch.zeros(1, task.slots, task.channel.bits))
+    # torch < 2.5 has no `dynamo` argument and exports with the TorchScript exporter anyway
+    legacy: dict[str, Any] = {"dynamo": False} if "dynamo" in inspect.signature(torch.onnx.export).parameters else {}
     with warnings.catch_warnings():
         # the TorchScript exporter is chosen on purpose (module docstring), so its deprecation notices are
         # noise here; the tracer's "torch.tensor ... registered as constants" is about the powers of two
@@ -68,7 +71,7 @@ def write_graph(controller: Controller, path: Path) -> None:
             controller.policy.eval(),
             example,
             str(path),
-            dynamo=False,
+            **legacy,
             opset_version=OPSET,
             input_names=list(INPUTS),
             output_names=list(OUTPUTS),
