@@ -48,6 +48,7 @@ def test_cli_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert {r["policy"] for r in rows} == {"oracle", "random"}
     assert all(float(r["ci95_low"]) <= float(r["mean_episode_length"]) <= float(r["ci95_high"]) for r in rows)
     assert (out / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "sweep.svg").read_text().startswith("<?xml")
     assert "wrote" in capsys.readouterr().out
     assert main(["sweep", "--param", "speed=1", "--out", str(out)]) == 2
     assert capsys.readouterr().err.count("\n") == 1

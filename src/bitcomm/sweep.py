@@ -3,7 +3,8 @@
 Each point is `bitcomm.evaluation.evaluate` on the same seeded episode set, so the curves differ only
 by the parameter (common random numbers). Reference policies are rebuilt for each task (the oracle
 reads the message delay from it); a learned policy is the same network at every point, facing
-conditions it may not have been trained on. Results go to a CSV and a PNG with one panel per parameter.
+conditions it may not have been trained on. Results go to a CSV and a figure (PNG and SVG) with one
+panel per parameter.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from bitcomm.agent_policies import BatchedPolicy
 from bitcomm.config import TaskConfig
 from bitcomm.errors import bad_value
 from bitcomm.evaluation import EvalResult, evaluate
+from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policy_source import PolicySource
 
 # parameter -> (config part, type); what a robot meets that the paper's simulator lacks, plus message delay
@@ -111,15 +113,17 @@ def write_csv(points: list[SweepPoint], path: str | Path) -> Path:
 
 
 def plot_sweep(points: list[SweepPoint], path: str | Path, title: str = "") -> Path:
-    """One panel per parameter: mean episode length (95% interval as bars) against its value, a line per policy."""
+    """One panel per parameter: mean episode length (95% interval as bars) against its value, a line per policy.
+
+    Written as `path` in PNG and beside it in SVG; returns the PNG's path.
+    """
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     params = list(dict.fromkeys(p.param for p in points))
     policies = list(dict.fromkeys(p.policy for p in points))
     fig = Figure(figsize=(3.6 * len(params) + 0.4, 3.4), layout="constrained")
     axes = np.atleast_1d(fig.subplots(1, len(params), squeeze=False)).ravel()
-    lengths = np.array([p.result.mean_episode_length for p in points])
-    log_scale = lengths.min() > 0 and lengths.max() / lengths.min() > 20  # e.g. oracle next to random play
+    log_scale = log_scale_suits([p.result.mean_episode_length for p in points])
     for ax, param in zip(axes, params, strict=True):
         for policy in policies:
             pts = sorted((p for p in points if p.param == param and p.policy == policy), key=lambda p: p.value)
@@ -136,7 +140,4 @@ def plot_sweep(points: list[SweepPoint], path: str | Path, title: str = "") -> P
     axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    return path
+    return save_figure(fig, path)[0]

@@ -16,7 +16,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     defaults = " ".join(f"{k}={','.join(str(v) for v in vs)}" for k, vs in DEFAULT_SWEEP.items())
     p = sub.add_parser(
         "sweep",
-        help="mean episode length against actuation and channel noise (CSV + PNG)",
+        help="mean episode length against actuation and channel noise (CSV, PNG and SVG)",
         description="Vary one parameter at a time from the task given by the flags (or RUN's task) and evaluate "
         f"each policy on the same episodes. Parameters: {', '.join(SWEEPABLE)}. Default: {defaults}.",
     )
@@ -25,7 +25,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--episodes", type=int, default=1000, help="episodes per point (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the episode set (default %(default)s)")
-    p.add_argument("--out", default="sweep", help="folder for sweep.csv and sweep.png (default %(default)s)")
+    p.add_argument("--out", default="sweep", help="folder for sweep.csv, sweep.png and sweep.svg (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the points as one JSON list")
     add_task_flags(p)
     add_policy_flags(p, several=True)
