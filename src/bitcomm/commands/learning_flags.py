@@ -34,7 +34,7 @@ PLAIN_TYPES: dict[str, type] = {"int": int, "float": float, "bool": bool, "str":
 
 
 @dataclass(frozen=True)
-class LearningOption:
+class Option:
     """One plain config field as a command-line option."""
 
     name: str
@@ -76,7 +76,7 @@ def _first_sentence(doc: str) -> str:
     return sentence.replace("%", "%%")  # argparse formats help with %
 
 
-def _class_options(module: str, cls: str) -> list[LearningOption]:
+def _class_options(module: str, cls: str) -> list[Option]:
     spec = importlib.util.find_spec(module)
     if spec is None or spec.origin is None:
         raise ImportError(f"cannot find {module}")
@@ -92,12 +92,12 @@ def _class_options(module: str, cls: str) -> list[LearningOption]:
         doc = None
         if isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str):
             doc = _first_sentence(after.value.value)
-        options.append(LearningOption(node.target.id, kind, doc))
+        options.append(Option(node.target.id, kind, doc))
     return options
 
 
 @lru_cache(maxsize=1)
-def learning_options() -> dict[str, LearningOption]:
+def learning_options() -> dict[str, Option]:
     """Every learning option by name: the plain fields of TrainConfig, then of ModelConfig."""
     return {o.name: o for module, cls in SOURCES for o in _class_options(module, cls)}
 

@@ -1,0 +1,91 @@
+"""`bitcomm compare`: the four techniques and a no-communication baseline over seeds (see `bitcomm.compare`).
+
+Task flags and learning flags are those of `bitcomm train` and apply to every run; `--vary NAME=V1,V2`
+(repeatable) makes one configuration per technique and value. Running the same command again skips
+finished runs and resumes interrupted ones.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from bitcomm.commands.common import add_task_flags, task_from_args
+from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
+from bitcomm.compare import CHOICES, CompareConfig, parse_techniques, parse_vary, run_compare
+from bitcomm.errors import bad_value
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "compare",
+        help="train the four techniques and a no-communication baseline over seeds: curves, table, summary",
+        description="Train every technique (standard|improved x onehot|bitwise) and a learned baseline whose "
+        "messages are all dropped, over several seeds at one budget; evaluate each run and the oracle on one "
+        "episode set; write curves.csv, curves.png/.svg, table.md and summary.json to --out.",
+    )
+    p.add_argument(
+        "--techniques",
+        type=str,
+        default=None,
+        metavar="A,B,...",
+        help=f"a subset of {', '.join(CHOICES)} (default: all)",
+    )
+    p.add_argument("--recipe", choices=("paper", "fast"), default="fast", help="learning options (default %(default)s)")
+    p.add_argument("--seeds", type=int, default=5, help="seeds 0..S-1 per configuration (default %(default)s)")
+    p.add_argument("--episodes", type=int, default=None, help="budget of every run (default: bitcomm train's)")
+    p.add_argument("--jobs", type=int, default=None, help="processes at once (default: the core count)")
+    p.add_argument("--out", type=Path, default=Path("runs/compare"), help="study folder (default %(default)s)")
+    p.add_argument("--eval-episodes", type=int, default=1000, help="evaluation episodes per run (default %(default)s)")
+    p.add_argument(
+        "--eval-seed",
+        type=int,
+        default=1000,
+        help="seed of the evaluation episodes, not a training seed (default %(default)s)",
+    )
+    p.add_argument(
+        "--vary",
+        action="append",
+        default=[],
+        metavar="NAME=V1,V2,...",
+        help="a learning or task option to vary, e.g. flip_prob=0,0.05,0.1 (repeatable; configurations are "
+        "techniques x the product of the values)",
+    )
+    p.add_argument("--json", action="store_true", help="print summary.json instead of the table")
+    add_learning_flags(p)
+    add_task_flags(p)
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from bitcomm.compare import table_markdown
+
+    vary = dict(parse_vary(text) for text in args.vary)
+    if len(vary) != len(args.vary):
+        raise bad_value("vary", args.vary, "each NAME at most once")
+    cfg = CompareConfig(
+        out=args.out,
+        techniques=parse_techniques(args.techniques) if args.techniques is not None else CHOICES,
+        recipe=args.recipe,
+        seeds=args.seeds,
+        episodes=args.episodes,
+        jobs=args.jobs if args.jobs is not None else os.cpu_count() or 1,
+        eval_episodes=args.eval_episodes,
+        eval_seed=args.eval_seed,
+        task=task_from_args(args),
+        learning=learning_overrides(args),
+        vary=vary,
+    )
+    progress = sys.stderr if args.json else sys.stdout
+    summary = run_compare(cfg, log=lambda line: print(line, file=progress, flush=True))
+    if args.json:
+        json.dump(summary, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    print()
+    print(table_markdown(summary), end="")
+    print(f"\nwrote {cfg.out}/curves.csv, curves.png, curves.svg, table.md and summary.json")
+    return 0

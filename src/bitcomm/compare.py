@@ -1,0 +1,599 @@
+"""The four-technique study: the paper's techniques and a learned no-communication baseline, each trained
+over several seeds at one budget, measured on one episode set and set against the oracle.
+
+    <out>/runs/<configuration>/seed<k>/  a `bitcomm train` run folder per run, plus its evaluation.json
+    <out>/curves.csv                     every run's learning curve, read from its metrics.csv
+    <out>/curves.png, curves.svg         rolling mean episode length against episodes: mean and 95%
+                                         interval over seeds per configuration, the oracle as a line
+    <out>/table.md, summary.json         per configuration: final evaluation (sampled and greedy), the
+                                         episodes and seconds until the rolling mean falls below 2x and
+                                         1.15x the oracle, wall time; each a mean and 95% interval over seeds
+
+A configuration is a technique with one value of each varied option (`vary={"flip_prob": (0, 0.05)}`),
+so a noise study is the same study. The learned baseline `no-comm` is `improved-bitwise` trained and
+measured with every message dropped (drop probability 1): what acting alone can do.
+
+Runs go to a pool of spawned processes with one torch thread each. A run whose checkpoint has reached
+the budget is skipped and a partial one resumed, so an interrupted study picks up where it stopped;
+the files at the top of `<out>` are derived from the run folders alone and rewritten on every call.
+The evaluation set has its own seed (`eval_seed`, never a training seed), so no run is measured on
+episodes it trained on, and every configuration faces the same episodes.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import itertools
+import json
+import math
+import os
+import typing
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import numpy as np
+
+from bitcomm.commands.learning_flags import Option, learning_options
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError, bad_value
+from bitcomm.plotting import log_scale_suits, save_figure
+from bitcomm.policy_source import TASK_FLAGS
+from bitcomm.stats import mean_interval
+
+if TYPE_CHECKING:
+    from bitcomm.evaluation import EvalResult
+    from bitcomm.train.config import TrainConfig
+
+TECHNIQUES: dict[str, tuple[str, str]] = {
+    "standard-onehot": ("standard", "onehot"),
+    "standard-bitwise": ("standard", "bitwise"),
+    "improved-onehot": ("improved", "onehot"),
+    "improved-bitwise": ("improved", "bitwise"),
+}
+"""The paper's four techniques: (estimator, message head)."""
+NO_COMM = "no-comm"
+"""The learned baseline: `improved-bitwise` with every message dropped."""
+CHOICES = (*TECHNIQUES, NO_COMM)
+THRESHOLDS = (2.0, 1.15)
+"""Levels, as multiples of the oracle's mean episode length, whose first crossing is timed."""
+GRID_POINTS = 200
+"""Points of the common episode grid the seeds' curves are interpolated onto for the plot."""
+CSV_POINTS = 1000
+"""At most this many rows of each run's curve go to curves.csv (evenly spaced, always the last)."""
+EVALUATION = "evaluation.json"
+
+
+def _task_options() -> dict[str, tuple[str, str, Option]]:
+    """The task flags with a number value: flag dest -> (config part, field, option)."""
+    hints = {"env": typing.get_type_hints(EnvConfig), "channel": typing.get_type_hints(ChannelConfig)}
+    return {
+        dest: (part, name, Option(dest, hints[part][name], None))
+        for dest, (part, name) in TASK_FLAGS.items()
+        if hints[part][name] in (int, float)
+    }
+
+
+TASK_OPTIONS = _task_options()
+
+
+def varied_options() -> dict[str, Option]:
+    """Everything `vary` accepts: every learning option and every numeric task option."""
+    return {**learning_options(), **{dest: option for dest, (_, _, option) in TASK_OPTIONS.items()}}
+
+
+def parse_vary(text: str) -> tuple[str, tuple[Any, ...]]:
+    """`NAME=V1,V2,...` (dashes allowed in NAME) -> (name, typed values), or one error line."""
+    name, sep, values = text.partition("=")
+    name = name.strip().replace("-", "_")
+    options = varied_options()
+    if not sep or name not in options:
+        raise bad_value("vary", text, f"expected NAME=V1,V2,... with NAME one of {', '.join(options)}")
+    parsed = tuple(options[name].parse(v) for v in values.split(",") if v.strip())
+    if not parsed:
+        raise bad_value("vary", text, "give at least one value")
+    if len(set(parsed)) != len(parsed):
+        raise bad_value("vary", text, "values repeat")
+    return name, parsed
+
+
+def parse_techniques(text: str) -> tuple[str, ...]:
+    """`improved-bitwise,no-comm` -> a tuple in the order given, or one error line."""
+    names = tuple(t.strip() for t in text.split(",") if t.strip())
+    if not names or any(t not in CHOICES for t in names) or len(set(names)) != len(names):
+        raise bad_value("techniques", text, f"a comma-separated subset of {', '.join(CHOICES)}")
+    return names
+
+
+def _plural(n: int, one: str, many: str) -> str:
+    return f"{n} {one if n == 1 else many}"
+
+
+def _format(value: Any) -> str:
+    """A varied value as names, folders and tables show it: 0.05, 0.0003, 1e-05, true."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+# ---------------------------------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class CompareConfig:
+    """One study; `bitcomm compare`'s flags one for one."""
+
+    out: Path = Path("runs/compare")
+    techniques: tuple[str, ...] = CHOICES
+    recipe: str = "fast"
+    seeds: int = 5
+    """Seeds 0 .. seeds-1 of every configuration."""
+    episodes: int | None = None
+    """The budget of every run; None: TrainConfig's default."""
+    jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
+    """Processes at once (an a3c run counts as its workers)."""
+    eval_episodes: int = 1000
+    eval_seed: int = 1000
+    """Seed of the evaluation episode set (and of sampling); may not be a training seed."""
+    task: TaskConfig = field(default_factory=TaskConfig)
+    learning: dict[str, Any] = field(default_factory=dict)
+    """Learning options given explicitly; the others are the recipe's."""
+    vary: dict[str, tuple[Any, ...]] = field(default_factory=dict)
+    """Option name -> values; configurations are techniques x the product of these."""
+
+    def __post_init__(self) -> None:
+        if not self.techniques or any(t not in CHOICES for t in self.techniques):
+            raise bad_value("techniques", self.techniques, f"choose from {', '.join(CHOICES)}")
+        for name in ("seeds", "jobs", "eval_episodes"):
+            if int(getattr(self, name)) < 1:
+                raise bad_value(name.replace("_", "-"), getattr(self, name), "must be an integer >= 1")
+        if self.episodes is not None and self.episodes < 1:
+            raise bad_value("episodes", self.episodes, "must be an integer >= 1")
+        if 0 <= self.eval_seed < self.seeds:
+            raise bad_value("eval-seed", self.eval_seed, f"must not be a training seed (0..{self.seeds - 1})")
+        unknown = set(self.vary) - set(varied_options())
+        if unknown:
+            raise bad_value("vary", sorted(unknown)[0], "not a learning or task option")
+
+
+class Configuration(NamedTuple):
+    """A technique with one value of each varied option; `variant` names the values alone (a plot panel),
+    `task_variant` the task options among them (what the oracle's level depends on)."""
+
+    technique: str
+    values: tuple[tuple[str, Any], ...] = ()
+
+    @property
+    def variant(self) -> str:
+        return " ".join(f"{k}={_format(v)}" for k, v in self.values)
+
+    @property
+    def task_variant(self) -> str:
+        return " ".join(f"{k}={_format(v)}" for k, v in self.values if k in TASK_OPTIONS)
+
+    @property
+    def name(self) -> str:
+        return f"{self.technique} {self.variant}".strip()
+
+    @property
+    def folder(self) -> str:
+        return self.name.replace(" ", "_")
+
+
+class Run(NamedTuple):
+    configuration: Configuration
+    seed: int
+    train: TrainConfig
+    folder: Path
+
+
+def variant_task(cfg: CompareConfig, values: tuple[tuple[str, Any], ...]) -> TaskConfig:
+    """The study's task with the varied task options applied (validated by the configs)."""
+    changes: dict[str, dict[str, Any]] = {"env": {}, "channel": {}}
+    for name, value in values:
+        if name in TASK_OPTIONS:
+            part, fname, option = TASK_OPTIONS[name]
+            changes[part][fname] = option.kind(value)
+    return TaskConfig(
+        dataclasses.replace(cfg.task.env, **changes["env"]), dataclasses.replace(cfg.task.channel, **changes["channel"])
+    )
+
+
+def train_config(cfg: CompareConfig, conf: Configuration, seed: int) -> TrainConfig:
+    from bitcomm.train.config import make_train_config
+
+    task = variant_task(cfg, conf.values)
+    if conf.technique == NO_COMM:
+        task = TaskConfig(task.env, dataclasses.replace(task.channel, drop_prob=1.0))
+    estimator, messages = TECHNIQUES.get(conf.technique, TECHNIQUES["improved-bitwise"])
+    learning = {**cfg.learning, **{k: v for k, v in conf.values if k not in TASK_OPTIONS}}
+    return make_train_config(
+        cfg.recipe, task, estimator=estimator, messages=messages, seed=seed, episodes=cfg.episodes, **learning
+    )
+
+
+def plan(cfg: CompareConfig) -> list[Run]:
+    """Every run of the study, seed by seed (so a study stopped early has every configuration's first
+    seeds); every config is built, so a bad value stops the study before anything is trained."""
+    products = itertools.product(*([(name, v) for v in values] for name, values in cfg.vary.items()))
+    configurations = [Configuration(t, values) for values in products for t in cfg.techniques]
+    return [
+        Run(conf, seed, train_config(cfg, conf, seed), cfg.out / "runs" / conf.folder / f"seed{seed}")
+        for seed in range(cfg.seeds)
+        for conf in configurations
+    ]
+
+
+# ---------------------------------------------------------------------------------------------- runs
+def _json(path: Path) -> dict[str, Any]:
+    return dict(json.loads(path.read_text()))
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def run_status(run: Run) -> str:
+    """`new`, `resume` (a checkpoint short of the budget) or `done`; an error for a folder holding another run."""
+    from bitcomm.checkpoint import CHECKPOINTS, LATEST
+
+    latest = run.folder / CHECKPOINTS / LATEST
+    if not latest.is_file():
+        return "new"
+    record, wanted = _json(run.folder / "config.json"), json.loads(json.dumps(run.train.to_dict()))
+    differs = [k for k in wanted if k != "episodes" and record.get(k) != wanted[k]]
+    if differs:
+        raise bad_value("out", str(run.folder), f"it holds a run with other {', '.join(differs)}; use another --out")
+    if record["episodes"] > run.train.episodes:
+        raise bad_value(
+            "episodes", run.train.episodes, f"{run.folder} was trained for {record['episodes']}; use another --out"
+        )
+    return "done" if _json(latest)["episodes"] >= run.train.episodes else "resume"
+
+
+def read_evaluation(run: Run, episodes: int, seed: int) -> dict[str, Any] | None:
+    """The run's evaluation.json if it measured its latest checkpoint on this episode set, else None."""
+    from bitcomm.checkpoint import CHECKPOINTS, LATEST
+
+    path, latest = run.folder / EVALUATION, run.folder / CHECKPOINTS / LATEST
+    if not (path.is_file() and latest.is_file()):
+        return None
+    record = _json(path)
+    same = (record.get("checkpoint"), record.get("episodes"), record.get("seed"))
+    return record if same == (_json(latest)["checkpoint"], episodes, seed) else None
+
+
+def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
+    """Sampled and greedy play of the latest checkpoint on its own task, written to evaluation.json."""
+    from bitcomm.checkpoint import CHECKPOINTS, LATEST
+    from bitcomm.evaluation import evaluate_checkpoint
+
+    record = {
+        "checkpoint": _json(run.folder / CHECKPOINTS / LATEST)["checkpoint"],
+        "episodes": episodes,
+        "seed": seed,
+        **{
+            play: evaluate_checkpoint(run.folder, episodes, seed, greedy=play == "greedy").to_dict()
+            for play in ("sampled", "greedy")
+        },
+    }
+    _write_atomic(run.folder / EVALUATION, json.dumps(record, indent=2) + "\n")
+    return record
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)  # parallel runs must not share (or fight over) thread pools
+
+
+def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
+    """Train (or resume) one run to its budget and evaluate it; returns the status it was found in."""
+    from bitcomm.train.run import train
+
+    status = run_status(run)
+    if status != "done":
+        train(run.train, run.folder, resume=status == "resume", progress=False)
+    if read_evaluation(run, eval_episodes, eval_seed) is None:
+        evaluate_run(run, eval_episodes, eval_seed)
+    return status
+
+
+def execute_all(runs: list[Run], cfg: CompareConfig, log: Callable[[str], None]) -> None:
+    """Every run that is not finished and evaluated, on up to `cfg.jobs` processes."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    todo = [r for r in runs if run_status(r) != "done" or read_evaluation(r, cfg.eval_episodes, cfg.eval_seed) is None]
+    per_run = max((r.train.workers if r.train.mode == "a3c" else 1 for r in todo), default=1)
+    processes = max(1, min(len(todo), cfg.jobs // per_run))
+    if not todo:
+        log(f"{_plural(len(runs), 'run', 'runs')}, all finished and evaluated")
+        return
+    workers = _plural(processes, "process", "processes")
+    log(f"{_plural(len(runs), 'run', 'runs')}, {len(runs) - len(todo)} finished; {len(todo)} to go on {workers}")
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker) as pool:
+        futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
+        try:
+            for k, future in enumerate(as_completed(futures), 1):
+                run, status = futures[future], future.result()
+                log(f"[{k}/{len(todo)}] {describe(run, status, cfg)}")
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+
+
+def describe(run: Run, status: str, cfg: CompareConfig) -> str:
+    """One progress line for a finished run."""
+    curve = read_curve(run.folder)
+    evaluation = read_evaluation(run, cfg.eval_episodes, cfg.eval_seed) or {}
+    verb = {"new": "trained", "resume": "resumed", "done": "evaluated"}[status]
+    sampled = evaluation.get("sampled", {}).get("mean_episode_length", math.nan)
+    return (
+        f"{run.configuration.name} seed {run.seed}: {verb} to {int(curve.episodes[-1])} episodes in "
+        f"{curve.wall_s[-1]:.1f} s, rolling mean episode length {curve.length_rolling[-1]:.2f}, "
+        f"evaluated {sampled:.2f} (sampled)"
+    )
+
+
+# ---------------------------------------------------------------------------------------------- results
+class Curve(NamedTuple):
+    """A run's learning curve, one entry per logged batch (metrics.csv)."""
+
+    episodes: np.ndarray
+    wall_s: np.ndarray
+    length_rolling: np.ndarray
+    length: np.ndarray
+    team_return: np.ndarray
+
+
+def read_curve(folder: Path) -> Curve:
+    with (folder / "metrics.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ConfigError(f"invalid run={str(folder)!r}: metrics.csv has no rows")
+    keys = ("episodes", "wall_s", "charts/episode_length_rolling", "charts/episode_length", "charts/team_return")
+    return Curve(*(np.array([float(r[k]) for r in rows]) for k in keys))
+
+
+def first_below(curve: Curve, level: float) -> dict[str, float] | None:
+    """Episodes and training seconds when the rolling mean episode length first fell below `level`."""
+    below = np.flatnonzero(curve.length_rolling < level)
+    if below.size == 0:
+        return None
+    return {"episodes": int(curve.episodes[below[0]]), "wall_s": float(curve.wall_s[below[0]])}
+
+
+def interval(values: list[float]) -> dict[str, Any] | None:
+    """Mean and 95% interval over seeds (None for no values)."""
+    if not values:
+        return None
+    mean, lo, hi = (float(x) for x in mean_interval(values))
+    return {"mean": mean, "ci95": [lo, hi], "n": len(values)}
+
+
+def oracle_result(task: TaskConfig, episodes: int, seed: int) -> EvalResult | None:
+    """The oracle on the evaluation set (None where it cannot play: too few bits for the grid)."""
+    from bitcomm.evaluation import evaluate
+    from bitcomm.policies import OraclePolicy
+
+    try:
+        return evaluate(OraclePolicy(task), task, episodes, seed)
+    except ConfigError:
+        return None
+
+
+def threshold_key(multiple: float) -> str:
+    return f"{multiple:g}x"
+
+
+def summarize(cfg: CompareConfig, runs: list[Run], oracle: dict[str, EvalResult | None]) -> dict[str, Any]:
+    """summary.json: the study, the oracle per variant, and per configuration its runs and their intervals."""
+    configurations = []
+    for conf in dict.fromkeys(r.configuration for r in runs):
+        result = oracle[conf.task_variant]
+        level = result.mean_episode_length if result is not None else None
+        records = []
+        for run in (r for r in runs if r.configuration == conf):
+            curve, evaluation = read_curve(run.folder), read_evaluation(run, cfg.eval_episodes, cfg.eval_seed)
+            if evaluation is None:
+                raise ConfigError(f"invalid run={str(run.folder)!r}: no evaluation of its latest checkpoint")
+            records.append(
+                {
+                    "seed": run.seed,
+                    "folder": str(run.folder.relative_to(cfg.out)),
+                    "episodes": int(curve.episodes[-1]),
+                    "wall_s": float(curve.wall_s[-1]),
+                    "final_rolling_episode_length": float(curve.length_rolling[-1]),
+                    "sampled": evaluation["sampled"],
+                    "greedy": evaluation["greedy"],
+                    "reached": {
+                        threshold_key(m): None if level is None else first_below(curve, m * level) for m in THRESHOLDS
+                    },
+                }
+            )
+        estimator, messages = TECHNIQUES.get(conf.technique, TECHNIQUES["improved-bitwise"])
+        entry: dict[str, Any] = {
+            "name": conf.name,
+            "technique": conf.technique,
+            "estimator": estimator,
+            "messages": messages,
+            "communication": conf.technique != NO_COMM,
+            "values": dict(conf.values),
+            "oracle_mean_episode_length": level,
+            "wall_s": interval([r["wall_s"] for r in records]),
+        }
+        for play in ("sampled", "greedy"):
+            entry[play] = {
+                key: interval([r[play][key] for r in records])
+                for key in ("mean_episode_length", "mean_team_return", "success_rate")
+            }
+        entry["reached"] = {}
+        for m in THRESHOLDS:
+            hits = [r["reached"][threshold_key(m)] for r in records if r["reached"][threshold_key(m)] is not None]
+            entry["reached"][threshold_key(m)] = {
+                "seeds": len(hits),
+                "of": len(records),
+                "episodes": interval([h["episodes"] for h in hits]),
+                "wall_s": interval([h["wall_s"] for h in hits]),
+            }
+        entry["runs"] = records
+        configurations.append(entry)
+    first = runs[0].train
+    return {
+        "study": {
+            "recipe": cfg.recipe,
+            "episodes": first.episodes,
+            "seeds": cfg.seeds,
+            "techniques": list(cfg.techniques),
+            "vary": {k: list(v) for k, v in cfg.vary.items()},
+            "learning": dict(cfg.learning),
+            "task": dataclasses.asdict(cfg.task),
+            "eval_episodes": cfg.eval_episodes,
+            "eval_seed": cfg.eval_seed,
+            "thresholds": [threshold_key(m) for m in THRESHOLDS],
+        },
+        "oracle": {variant: None if r is None else r.to_dict() for variant, r in oracle.items()},
+        "configurations": configurations,
+    }
+
+
+# ---------------------------------------------------------------------------------------------- files
+def write_curves_csv(runs: list[Run], cfg: CompareConfig, path: Path) -> None:
+    varied = list(cfg.vary)
+    columns = ["configuration", "technique", *varied, "seed", "episodes", "wall_s", "episode_length_rolling",
+               "episode_length", "team_return"]  # fmt: skip
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with tmp.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(columns)
+        for run in runs:
+            curve = read_curve(run.folder)
+            n = len(curve.episodes)
+            keep = np.unique(np.linspace(0, n - 1, min(n, CSV_POINTS)).round().astype(int))
+            values = dict(run.configuration.values)
+            for i in keep:
+                writer.writerow([run.configuration.name, run.configuration.technique,
+                                 *(_format(values[v]) for v in varied), run.seed, int(curve.episodes[i]),
+                                 *(float(a[i]) for a in curve[1:])])  # fmt: skip
+    tmp.replace(path)
+
+
+def _on_grid(curves: list[Curve]) -> tuple[np.ndarray, np.ndarray]:
+    """The seeds' rolling mean episode lengths interpolated onto episodes every seed has reached."""
+    lo, hi = max(c.episodes[0] for c in curves), min(c.episodes[-1] for c in curves)
+    grid = np.linspace(lo, hi, GRID_POINTS) if hi > lo else np.array([hi])
+    return grid, np.stack([np.interp(grid, c.episodes, c.length_rolling) for c in curves])
+
+
+def plot_curves(runs: list[Run], cfg: CompareConfig, oracle: dict[str, EvalResult | None], path: Path) -> None:
+    """One panel per variant (a shared y axis), a line per technique: mean over seeds with the 95% interval
+    shaded; the oracle dashed."""
+    from matplotlib.figure import Figure
+
+    panels = {r.configuration.variant: r.configuration.task_variant for r in runs}
+    cols = 2 if len(panels) == 4 else min(3, len(panels))
+    rows = math.ceil(len(panels) / cols)
+    fig = Figure(figsize=(5.4 * cols + 0.4, 3.8 * rows), layout="constrained")
+    axes = fig.subplots(rows, cols, squeeze=False, sharey=True).ravel()
+    shown = []
+    for ax, (variant, task_variant) in zip(axes, panels.items(), strict=False):
+        for conf in dict.fromkeys(r.configuration for r in runs if r.configuration.variant == variant):
+            curves = [read_curve(r.folder) for r in runs if r.configuration == conf]
+            grid, lengths = _on_grid(curves)
+            mean, lo, hi = mean_interval(lengths)
+            color = f"C{CHOICES.index(conf.technique)}"
+            ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({len(curves)} seeds)")
+            ax.fill_between(grid, lo, hi, color=color, alpha=0.2, lw=0)
+            shown += [lo, hi]
+        result = oracle[task_variant]
+        if result is not None:
+            ax.axhline(result.mean_episode_length, color="k", ls="--", lw=1, label="oracle")
+            shown.append(np.array([result.mean_episode_length]))
+        ax.set_xlabel("environment episodes")
+        ax.set_ylabel("mean episode length (rolling)")
+        if variant:
+            ax.set_title(variant, fontsize=9)
+        ax.grid(alpha=0.3)
+    if log_scale_suits(np.concatenate(shown)):
+        axes[0].set_yscale("log")  # shared by every panel
+    for ax in axes[len(panels) :]:
+        ax.set_visible(False)
+    axes[0].legend(fontsize=8)
+    env = cfg.task.env
+    fig.suptitle(
+        f"{cfg.recipe} recipe, {env.size}x{env.size} grid, K = {cfg.task.channel.bits}: mean and 95% interval over "
+        f"{cfg.seeds} seeds",
+        fontsize=10,
+    )
+    save_figure(fig, path)
+
+
+def _cell(value: dict[str, Any] | None, fmt: str) -> str:
+    if value is None:
+        return "—"
+    lo, hi = value["ci95"]
+    return f"{value['mean']:{fmt}}" if value["n"] < 2 else f"{value['mean']:{fmt}} ± {(hi - lo) / 2:{fmt}}"
+
+
+def table_markdown(summary: dict[str, Any]) -> str:
+    """table.md: one row per configuration (and the oracle per variant), mean ± 95% half-interval over seeds."""
+    study = summary["study"]
+    env, channel = study["task"]["env"], study["task"]["channel"]
+    keys = study["thresholds"]
+    header = ["configuration", "length (sampled)", "return (sampled)", "length (greedy)", "return (greedy)",
+              *(f"episodes to {k} oracle" for k in keys), *(f"seconds to {k} oracle" for k in keys),
+              "seconds per run"]  # fmt: skip
+    lines = [
+        f"# bitcomm compare: {study['recipe']} recipe, {_plural(study['seeds'], 'seed', 'seeds')} x "
+        f"{study['episodes']:,} episodes",
+        "",
+        f"Task: {env['size']}x{env['size']} grid, {env['n_agents']} agents, K = {channel['bits']} bits, delay "
+        f"{channel['delay']}, flip {channel['flip_prob']:g}, drop {channel['drop_prob']:g}"
+        + "".join(f"; varied {k}: {', '.join(_format(x) for x in v)}" for k, v in study["vary"].items())
+        + f". Evaluation: {study['eval_episodes']} episodes of seed {study['eval_seed']}, sampled and greedy.",
+        "Each cell is the mean ± the 95% half-interval over seeds (Student t); (k/n): the seeds that reached the "
+        "level, averaged over those; seconds are training wall time, with runs sharing the machine's cores.",
+        "",
+        "| " + " | ".join(header) + " |",
+        "|" + "---|" * len(header),
+    ]
+    for variant, result in summary["oracle"].items():
+        if result is not None:
+            cells = [f"{result['mean_episode_length']:.2f}", f"{result['mean_team_return']:.2f}"] * 2
+            lines.append("| " + " | ".join([f"oracle {variant}".strip(), *cells, *["—"] * (2 * len(keys) + 1)]) + " |")
+    for c in summary["configurations"]:
+        reached = [c["reached"][k] for k in keys]
+        cells = [c["name"]]
+        for play in ("sampled", "greedy"):
+            cells += [_cell(c[play]["mean_episode_length"], ".2f"), _cell(c[play]["mean_team_return"], ".2f")]
+        for what, fmt in (("episodes", ",.0f"), ("wall_s", ",.1f")):
+            cells += [
+                f"{_cell(r[what], fmt)} ({r['seeds']}/{r['of']})" if r["seeds"] else f"not reached (0/{r['of']})"
+                for r in reached
+            ]
+        cells.append(_cell(c["wall_s"], ",.1f"))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Train what is missing, then write curves.csv, curves.png/.svg, table.md and summary.json; returns the summary."""
+    runs = plan(cfg)
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    oracle = {
+        r.configuration.task_variant: oracle_result(variant_task(cfg, r.configuration.values), cfg.eval_episodes,
+                                                    cfg.eval_seed)
+        for r in runs
+        if r.seed == 0
+    }  # fmt: skip
+    execute_all(runs, cfg, log)
+    summary = summarize(cfg, runs, oracle)
+    write_curves_csv(runs, cfg, cfg.out / "curves.csv")
+    plot_curves(runs, cfg, oracle, cfg.out / "curves.png")
+    _write_atomic(cfg.out / "table.md", table_markdown(summary))
+    _write_atomic(cfg.out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return summary

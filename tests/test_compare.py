@@ -1,0 +1,178 @@
+"""`bitcomm compare` on a tiny grid: every file there and well formed, a second call trains nothing and writes
+the same files, a partial run is resumed, `--vary` makes the product of configurations, bad input is one line."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from bitcomm.cli import main
+from bitcomm.compare import CHOICES, CompareConfig, execute, plan
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError
+
+TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
+        "--eval-episodes", "50"]  # fmt: skip
+ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+OUTPUTS = ("curves.csv", "curves.png", "curves.svg", "table.md", "summary.json")
+
+
+def bitcomm(*args: str) -> subprocess.CompletedProcess:
+    out = subprocess.run(
+        [sys.executable, "-m", "bitcomm.cli", *args], capture_output=True, text=True, env=ENV, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    return out
+
+
+def strict_json(path: Path) -> Any:
+    def refuse(name: str) -> None:
+        raise AssertionError(f"{name} in {path}")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def intervals(node: Any) -> list[dict[str, Any]]:
+    """Every {mean, ci95, n} of a summary."""
+    if isinstance(node, dict):
+        found = [node] if {"mean", "ci95", "n"} <= set(node) else []
+        return found + [i for v in node.values() for i in intervals(v)]
+    if isinstance(node, list):
+        return [i for v in node for i in intervals(v)]
+    return []
+
+
+def curves(out: Path) -> list[dict[str, str]]:
+    with (out / "curves.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    out = tmp_path_factory.mktemp("compare") / "study"
+    return out, bitcomm("compare", *TINY, "--episodes", "64", "--seeds", "2", "--jobs", "2", "--out", str(out)).stdout
+
+
+def test_study_writes_every_file_well_formed(study: tuple[Path, str]) -> None:
+    out, stdout = study
+    assert stdout.count("trained to 64 episodes") == len(CHOICES) * 2
+    rows = curves(out)
+    assert {(r["configuration"], r["seed"]) for r in rows} == {(t, s) for t in CHOICES for s in ("0", "1")}
+    assert all(math.isfinite(float(v)) for r in rows for k, v in r.items() if k not in ("configuration", "technique"))
+    assert max(int(r["episodes"]) for r in rows) == 64
+    assert (out / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "curves.svg").read_text().startswith("<?xml")
+
+    summary = strict_json(out / "summary.json")
+    assert summary["study"]["episodes"] == 64 and summary["study"]["seeds"] == 2
+    oracle = summary["oracle"][""]["mean_episode_length"]
+    assert 1 < oracle < 16
+    assert [c["name"] for c in summary["configurations"]] == list(CHOICES)
+    for c in summary["configurations"]:
+        assert c["communication"] == (c["technique"] != "no-comm") and c["oracle_mean_episode_length"] == oracle
+        assert [r["seed"] for r in c["runs"]] == [0, 1]
+        for r in c["runs"]:
+            assert r["episodes"] == 64 and r["sampled"]["episodes"] == r["greedy"]["episodes"] == 50
+            assert set(r["reached"]) == {"2x", "1.15x"}
+            config = json.loads((out / r["folder"] / "config.json").read_text())
+            assert config["seed"] == r["seed"] and config["task"]["env"]["size"] == 3
+            assert config["task"]["channel"]["drop_prob"] == (1.0 if c["technique"] == "no-comm" else 0.0)
+            assert (config["estimator"], config["model"]["messages"]) == (c["estimator"], c["messages"])
+        assert c["sampled"]["mean_episode_length"]["n"] == c["wall_s"]["n"] == 2
+    found = intervals(summary["configurations"])
+    assert len(found) >= len(CHOICES) * 7
+    assert all(i["ci95"][0] <= i["mean"] <= i["ci95"][1] for i in found)
+
+    table = (out / "table.md").read_text().splitlines()
+    header = next(line for line in table if line.startswith("| configuration"))
+    body = [line for line in table if line.startswith("| ") and line != header]
+    assert [line.split(" | ")[0][2:] for line in body] == ["oracle", *CHOICES]
+    assert all(line.count(" | ") == header.count(" | ") for line in body)
+    assert header in stdout
+
+
+def test_second_call_trains_nothing_and_rewrites_the_same_files(study: tuple[Path, str]) -> None:
+    out, _ = study
+    before = {name: (out / name).read_bytes() for name in OUTPUTS}
+    checkpoints = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.json")}
+    evaluations = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/evaluation.json")}
+    assert len(checkpoints) == len(evaluations) == len(CHOICES) * 2
+    res = bitcomm("compare", *TINY, "--episodes", "64", "--seeds", "2", "--out", str(out), "--json")
+    assert "10 runs, all finished and evaluated" in res.stderr and "trained" not in res.stderr
+    assert json.loads(res.stdout) == strict_json(out / "summary.json")
+    assert {name: (out / name).read_bytes() for name in OUTPUTS} == before
+    assert {p: p.stat().st_mtime_ns for p in checkpoints} == checkpoints
+    assert {p: p.stat().st_mtime_ns for p in evaluations} == evaluations
+
+
+def test_vary_makes_the_product_of_configurations(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "noise"
+    args = ["--techniques", "improved-bitwise", "--vary", "flip-prob=0,0.1", "--episodes", "32", "--seeds", "1"]
+    assert main(["compare", *TINY, *args, "--jobs", "1", "--out", str(out)]) == 0
+    names = ["improved-bitwise flip_prob=0", "improved-bitwise flip_prob=0.1"]
+    assert {(r["configuration"], r["flip_prob"]) for r in curves(out)} == set(zip(names, ("0", "0.1"), strict=True))
+    summary = strict_json(out / "summary.json")
+    assert [c["name"] for c in summary["configurations"]] == names
+    assert set(summary["oracle"]) == {"flip_prob=0", "flip_prob=0.1"}
+    noisy = json.loads((out / "runs" / "improved-bitwise_flip_prob=0.1" / "seed0" / "config.json").read_text())
+    assert noisy["task"]["channel"]["flip_prob"] == 0.1
+    stdout = capsys.readouterr().out
+    assert all(f"| {n} |" in stdout for n in names)
+
+    # the product: techniques x every varied option's values, learning and task options alike
+    task = TaskConfig(EnvConfig(size=3), ChannelConfig(bits=4))
+    vary = {"lr": (1e-3, 3e-4), "flip_prob": (0.0, 0.05, 0.1)}
+    runs = plan(CompareConfig(out=tmp_path, techniques=("standard-onehot", "no-comm"), seeds=1, task=task, vary=vary))
+    assert len(runs) == 2 * 2 * 3
+    assert {(r.configuration.technique, r.train.lr, r.train.task.channel.flip_prob) for r in runs} == {
+        (t, lr, f) for t in ("standard-onehot", "no-comm") for lr in vary["lr"] for f in vary["flip_prob"]
+    }
+    assert all(r.train.task.channel.drop_prob == (r.configuration.technique == "no-comm") for r in runs)
+
+
+def test_partial_run_is_resumed_and_another_run_is_refused(tmp_path: Path) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    task = TaskConfig(EnvConfig(size=3, max_steps=16), ChannelConfig(bits=4))
+    common = dict(out=tmp_path, techniques=("improved-onehot",), seeds=1, eval_episodes=20, task=task)
+    short, = plan(CompareConfig(**common, episodes=32, learning={"num_envs": 16}))  # fmt: skip
+    assert execute(short, 20, 1000) == "new"
+    full, = plan(CompareConfig(**common, episodes=48, learning={"num_envs": 16}))  # fmt: skip
+    assert execute(full, 20, 1000) == "resume" and execute(full, 20, 1000) == "done"
+    with (full.folder / "metrics.csv").open() as f:
+        assert [int(r["episodes"]) for r in csv.DictReader(f)] == [16, 32, 48]
+    other, = plan(CompareConfig(**common, episodes=48, learning={"num_envs": 16, "lr": 0.01}))  # fmt: skip
+    with pytest.raises(ConfigError, match="lr"):
+        execute(other, 20, 1000)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--vary", "speed=1,2"],
+        ["--vary", "flip_prob"],
+        ["--vary", "lr=fast"],
+        ["--vary", "epochs=1.5"],
+        ["--vary", "lr=-1,0.001"],
+        ["--vary", "flip_prob=0,2"],
+        ["--vary", "lr=1e-3", "--vary", "lr=1e-4"],
+        ["--techniques", "improved-bitwise,telepathy"],
+        ["--eval-seed", "1", "--seeds", "2"],
+        ["--seeds", "0"],
+    ],
+)
+def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["compare", "--size", "3", "--bits", "4", *argv, "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert not (tmp_path / "out").exists()
