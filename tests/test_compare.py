@@ -12,10 +12,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from bitcomm.cli import main
-from bitcomm.compare import CHOICES, CompareConfig, execute, plan
+from bitcomm.compare import CHOICES, CompareConfig, Curve, execute, first_below, plan
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
 
@@ -153,6 +154,13 @@ def test_partial_run_is_resumed_and_another_run_is_refused(tmp_path: Path) -> No
     other, = plan(CompareConfig(**common, episodes=48, learning={"num_envs": 16, "lr": 0.01}))  # fmt: skip
     with pytest.raises(ConfigError, match="lr"):
         execute(other, 20, 1000)
+
+
+def test_time_to_a_level_is_the_first_batch_below_it() -> None:
+    steps = np.array([16.0, 32.0, 48.0])
+    curve = Curve(steps, np.array([1.0, 2.5, 4.0]), np.array([20.0, 9.0, 5.0]), steps, -steps)
+    assert first_below(curve, 10.0) == {"episodes": 32, "wall_s": 2.5}
+    assert first_below(curve, 5.0) is None
 
 
 @pytest.mark.parametrize(

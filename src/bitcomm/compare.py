@@ -64,6 +64,8 @@ GRID_POINTS = 200
 CSV_POINTS = 1000
 """At most this many rows of each run's curve go to curves.csv (evenly spaced, always the last)."""
 EVALUATION = "evaluation.json"
+RESUMABLE = ("episodes", "checkpoint_seconds")
+"""Config fields a finished or partial run may differ in from the study and still count as its run."""
 
 
 def _task_options() -> dict[str, tuple[str, str, Option]]:
@@ -112,10 +114,14 @@ def _plural(n: int, one: str, many: str) -> str:
 
 
 def _format(value: Any) -> str:
-    """A varied value as names, folders and tables show it: 0.05, 0.0003, 1e-05, true."""
+    """A varied value as names, folders and tables show it: 0.05, 0.0003, 1e-05, true (exact, so two values
+    never share a folder)."""
     if isinstance(value, bool):
         return str(value).lower()
-    return f"{value:g}" if isinstance(value, float) else str(value)
+    if isinstance(value, float):
+        short = f"{value:g}"
+        return short if float(short) == value else repr(value)
+    return str(value)
 
 
 # ---------------------------------------------------------------------------------------------- config
@@ -243,7 +249,7 @@ def run_status(run: Run) -> str:
     if not latest.is_file():
         return "new"
     record, wanted = _json(run.folder / "config.json"), json.loads(json.dumps(run.train.to_dict()))
-    differs = [k for k in wanted if k != "episodes" and record.get(k) != wanted[k]]
+    differs = [k for k in wanted if k not in RESUMABLE and record.get(k) != wanted[k]]
     if differs:
         raise bad_value("out", str(run.folder), f"it holds a run with other {', '.join(differs)}; use another --out")
     if record["episodes"] > run.train.episodes:
@@ -390,15 +396,17 @@ def threshold_key(multiple: float) -> str:
     return f"{multiple:g}x"
 
 
-def summarize(cfg: CompareConfig, runs: list[Run], oracle: dict[str, EvalResult | None]) -> dict[str, Any]:
-    """summary.json: the study, the oracle per variant, and per configuration its runs and their intervals."""
+def summarize(
+    cfg: CompareConfig, runs: list[Run], curves: dict[Path, Curve], oracle: dict[str, EvalResult | None]
+) -> dict[str, Any]:
+    """summary.json: the study, the oracle per task variant, and per configuration its runs and their intervals."""
     configurations = []
     for conf in dict.fromkeys(r.configuration for r in runs):
         result = oracle[conf.task_variant]
         level = result.mean_episode_length if result is not None else None
         records = []
         for run in (r for r in runs if r.configuration == conf):
-            curve, evaluation = read_curve(run.folder), read_evaluation(run, cfg.eval_episodes, cfg.eval_seed)
+            curve, evaluation = curves[run.folder], read_evaluation(run, cfg.eval_episodes, cfg.eval_seed)
             if evaluation is None:
                 raise ConfigError(f"invalid run={str(run.folder)!r}: no evaluation of its latest checkpoint")
             records.append(
@@ -431,8 +439,8 @@ def summarize(cfg: CompareConfig, runs: list[Run], oracle: dict[str, EvalResult 
                 key: interval([r[play][key] for r in records])
                 for key in ("mean_episode_length", "mean_team_return", "success_rate")
             }
-        entry["reached"] = {}
-        for m in THRESHOLDS:
+        entry["reached"] = {} if level is not None else None
+        for m in THRESHOLDS if level is not None else ():
             hits = [r["reached"][threshold_key(m)] for r in records if r["reached"][threshold_key(m)] is not None]
             entry["reached"][threshold_key(m)] = {
                 "seeds": len(hits),
@@ -462,7 +470,8 @@ def summarize(cfg: CompareConfig, runs: list[Run], oracle: dict[str, EvalResult 
 
 
 # ---------------------------------------------------------------------------------------------- files
-def write_curves_csv(runs: list[Run], cfg: CompareConfig, path: Path) -> None:
+def write_curves_csv(runs: list[Run], curves: dict[Path, Curve], cfg: CompareConfig, path: Path) -> None:
+    """Every run's curve, at most CSV_POINTS rows each, with the configuration's varied values as columns."""
     varied = list(cfg.vary)
     columns = ["configuration", "technique", *varied, "seed", "episodes", "wall_s", "episode_length_rolling",
                "episode_length", "team_return"]  # fmt: skip
@@ -471,7 +480,7 @@ def write_curves_csv(runs: list[Run], cfg: CompareConfig, path: Path) -> None:
         writer = csv.writer(f)
         writer.writerow(columns)
         for run in runs:
-            curve = read_curve(run.folder)
+            curve = curves[run.folder]
             n = len(curve.episodes)
             keep = np.unique(np.linspace(0, n - 1, min(n, CSV_POINTS)).round().astype(int))
             values = dict(run.configuration.values)
@@ -489,7 +498,9 @@ def _on_grid(curves: list[Curve]) -> tuple[np.ndarray, np.ndarray]:
     return grid, np.stack([np.interp(grid, c.episodes, c.length_rolling) for c in curves])
 
 
-def plot_curves(runs: list[Run], cfg: CompareConfig, oracle: dict[str, EvalResult | None], path: Path) -> None:
+def plot_curves(
+    runs: list[Run], curves: dict[Path, Curve], cfg: CompareConfig, oracle: dict[str, EvalResult | None], path: Path
+) -> None:
     """One panel per variant (a shared y axis), a line per technique: mean over seeds with the 95% interval
     shaded; the oracle dashed."""
     from matplotlib.figure import Figure
@@ -502,11 +513,11 @@ def plot_curves(runs: list[Run], cfg: CompareConfig, oracle: dict[str, EvalResul
     shown = []
     for ax, (variant, task_variant) in zip(axes, panels.items(), strict=False):
         for conf in dict.fromkeys(r.configuration for r in runs if r.configuration.variant == variant):
-            curves = [read_curve(r.folder) for r in runs if r.configuration == conf]
-            grid, lengths = _on_grid(curves)
+            seeds = [curves[r.folder] for r in runs if r.configuration == conf]
+            grid, lengths = _on_grid(seeds)
             mean, lo, hi = mean_interval(lengths)
             color = f"C{CHOICES.index(conf.technique)}"
-            ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({len(curves)} seeds)")
+            ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({len(seeds)} seeds)")
             ax.fill_between(grid, lo, hi, color=color, alpha=0.2, lw=0)
             shown += [lo, hi]
         result = oracle[task_variant]
@@ -539,6 +550,14 @@ def _cell(value: dict[str, Any] | None, fmt: str) -> str:
     return f"{value['mean']:{fmt}}" if value["n"] < 2 else f"{value['mean']:{fmt}} ± {(hi - lo) / 2:{fmt}}"
 
 
+def _reached_cell(reached: dict[str, Any] | None, what: str, fmt: str) -> str:
+    if reached is None:
+        return "no oracle"
+    if not reached["seeds"]:
+        return f"not reached (0/{reached['of']})"
+    return f"{_cell(reached[what], fmt)} ({reached['seeds']}/{reached['of']})"
+
+
 def table_markdown(summary: dict[str, Any]) -> str:
     """table.md: one row per configuration (and the oracle per variant), mean ± 95% half-interval over seeds."""
     study = summary["study"]
@@ -566,15 +585,12 @@ def table_markdown(summary: dict[str, Any]) -> str:
             cells = [f"{result['mean_episode_length']:.2f}", f"{result['mean_team_return']:.2f}"] * 2
             lines.append("| " + " | ".join([f"oracle {variant}".strip(), *cells, *["—"] * (2 * len(keys) + 1)]) + " |")
     for c in summary["configurations"]:
-        reached = [c["reached"][k] for k in keys]
+        reached = [c["reached"][k] if c["reached"] is not None else None for k in keys]
         cells = [c["name"]]
         for play in ("sampled", "greedy"):
             cells += [_cell(c[play]["mean_episode_length"], ".2f"), _cell(c[play]["mean_team_return"], ".2f")]
         for what, fmt in (("episodes", ",.0f"), ("wall_s", ",.1f")):
-            cells += [
-                f"{_cell(r[what], fmt)} ({r['seeds']}/{r['of']})" if r["seeds"] else f"not reached (0/{r['of']})"
-                for r in reached
-            ]
+            cells += [_reached_cell(r, what, fmt) for r in reached]
         cells.append(_cell(c["wall_s"], ",.1f"))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -584,16 +600,13 @@ def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[
     """Train what is missing, then write curves.csv, curves.png/.svg, table.md and summary.json; returns the summary."""
     runs = plan(cfg)
     cfg.out.mkdir(parents=True, exist_ok=True)
-    oracle = {
-        r.configuration.task_variant: oracle_result(variant_task(cfg, r.configuration.values), cfg.eval_episodes,
-                                                    cfg.eval_seed)
-        for r in runs
-        if r.seed == 0
-    }  # fmt: skip
+    tasks = {r.configuration.task_variant: variant_task(cfg, r.configuration.values) for r in runs}
+    oracle = {variant: oracle_result(task, cfg.eval_episodes, cfg.eval_seed) for variant, task in tasks.items()}
     execute_all(runs, cfg, log)
-    summary = summarize(cfg, runs, oracle)
-    write_curves_csv(runs, cfg, cfg.out / "curves.csv")
-    plot_curves(runs, cfg, oracle, cfg.out / "curves.png")
+    curves = {r.folder: read_curve(r.folder) for r in runs}
+    summary = summarize(cfg, runs, curves, oracle)
+    write_curves_csv(runs, curves, cfg, cfg.out / "curves.csv")
+    plot_curves(runs, curves, cfg, oracle, cfg.out / "curves.png")
     _write_atomic(cfg.out / "table.md", table_markdown(summary))
     _write_atomic(cfg.out / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary

@@ -52,7 +52,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=[],
         metavar="NAME=V1,V2,...",
         help="a learning or task option to vary, e.g. flip_prob=0,0.05,0.1 (repeatable; configurations are "
-        "techniques x the product of the values)",
+        "techniques x the product of the values; a varied option overrides its flag)",
     )
     p.add_argument("--json", action="store_true", help="print summary.json instead of the table")
     add_learning_flags(p)
