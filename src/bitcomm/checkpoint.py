@@ -98,6 +98,21 @@ def resolve(path: Path | str) -> Path:
     return p
 
 
+def checkpoints(run: Path | str) -> list[tuple[int, Path]]:
+    """Every checkpoint a run kept, as `(episodes, weights file)` in training order (checkpoints are
+    not rotated, so these are the run's stages). Files of an unfinished write (no `.state.pt`) are left out."""
+    p = Path(run)
+    folder = p / CHECKPOINTS if (p / CHECKPOINTS).is_dir() else p
+    if not (folder / LATEST).is_file():
+        raise _bad(run, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
+    found = []
+    for file in folder.glob("ckpt_*.safetensors"):
+        stem = file.name.removesuffix(".safetensors")
+        if stem[5:].isdigit() and file.with_name(f"{stem}.state.pt").is_file():
+            found.append((int(stem[5:]), file))
+    return sorted(found)
+
+
 def load_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
     """Weights by prefix (`policy`, `critic`) and metadata (config as a dict, episodes, batches)."""
     from safetensors import safe_open

@@ -1,0 +1,89 @@
+"""`bitcomm scaling`: bitwise against one-hot messages as the grid grows (see `bitcomm.scaling`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from bitcomm.scaling import ScalingConfig
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    # defaults written out (the same as ScalingConfig's, checked by a test): importing bitcomm.scaling
+    # here would load torch for every command of the CLI
+    p = sub.add_parser(
+        "scaling",
+        help="output size, parameters, memory and update time of bitwise vs one-hot heads by grid size",
+        description="For each grid side S (K = ceil(log2(S^2)) bits) and each message head: message outputs (K vs "
+        "2^K), parameters of the policy and both critics, parameter bytes, peak memory of one learner update "
+        "(torch profiler, CPU) and its time on a fixed small batch; optionally a training run per pair "
+        "(--episodes). Writes scaling.csv, scaling.md and scaling.png.",
+    )
+    p.add_argument("--sizes", default="10,16,32,64", help="grid sides (default %(default)s)")
+    p.add_argument(
+        "--recipe", choices=("fast", "paper"), default="fast", help="networks and update (default %(default)s)"
+    )
+    p.add_argument("--estimator", choices=("improved", "standard"), default="improved", help="(default %(default)s)")
+    p.add_argument("--batch-episodes", type=int, default=8, help="episodes in the timed batch (default %(default)s)")
+    p.add_argument("--batch-steps", type=int, default=32, help="their truncation length (default %(default)s)")
+    p.add_argument("--repeats", type=int, default=5, help="timed updates, median taken (default %(default)s)")
+    p.add_argument(
+        "--episodes",
+        type=int,
+        default=0,
+        help="training budget per size and head for learning curves; 0 skips training (default %(default)s)",
+    )
+    p.add_argument("--num-envs", type=int, default=None, help="episodes per training batch (default: the recipe's)")
+    p.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=8.0,
+        help="train only pairs whose estimated training update fits (default %(default)s)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="(default %(default)s)")
+    p.add_argument("--out", default="scaling", help="folder for scaling.csv/.md/.png (default %(default)s)")
+    p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
+    p.set_defaults(run=run)
+
+
+def scaling_config(args: argparse.Namespace) -> ScalingConfig:
+    from bitcomm.scaling import ScalingConfig, parse_sizes
+
+    return ScalingConfig(
+        sizes=parse_sizes(args.sizes),
+        recipe=args.recipe,
+        estimator=args.estimator,
+        batch_episodes=args.batch_episodes,
+        batch_steps=args.batch_steps,
+        repeats=args.repeats,
+        episodes=args.episodes,
+        num_envs=args.num_envs,
+        max_memory_gb=args.max_memory_gb,
+        seed=args.seed,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from bitcomm.scaling import markdown_table, plot_curves, plot_scaling, run_scaling, write_csv
+
+    scfg = scaling_config(args)
+    out = Path(args.out)
+    rows = run_scaling(scfg, out, progress=not args.json)
+    csv_path = write_csv(rows, out / "scaling.csv")
+    md_path = out / "scaling.md"
+    md_path.write_text(markdown_table(rows, scfg))
+    written = [csv_path, md_path, plot_scaling(rows, out / "scaling.png")]
+    curves = plot_curves(out, rows)
+    if curves is not None:
+        written.append(curves)
+    if args.json:
+        json.dump([r.to_dict() for r in rows], sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    print(markdown_table(rows, scfg), end="")
+    print("wrote " + ", ".join(map(str, written)))
+    return 0

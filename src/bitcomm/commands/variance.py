@@ -1,0 +1,111 @@
+"""`bitcomm variance RUN_OR_CHECKPOINT...`: the two estimators' gradient variance at fixed policies (see
+`bitcomm.variance`), at the stages of a run kept in its `checkpoints/` folder."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from bitcomm.commands.common import add_task_flags
+
+if TYPE_CHECKING:
+    from bitcomm.variance import VarianceConfig
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    # defaults written out (the same as VarianceConfig's, checked by a test): importing bitcomm.variance
+    # here would load torch for every command of the CLI
+    from bitcomm.policy_source import mark_task_defaults
+
+    p = sub.add_parser(
+        "variance",
+        help="variance of the standard and improved gradient estimators along a run (CSV, Markdown, PNG)",
+        description="At each checkpoint (policy frozen) fit a V1 and a V2 critic to the Monte Carlo returns, then "
+        "compare the standard (eq. 7) and improved (eq. 8) policy-gradient estimates of many independent batches: "
+        "trace of their covariance for the message and the action part, ratio improved/standard, and the cosine "
+        "between their mean gradients. Task flags change the task the policy is measured on (e.g. --delay).",
+    )
+    p.add_argument(
+        "paths", nargs="+", metavar="RUN_OR_CHECKPOINT", help="run folders (their kept checkpoints) or .safetensors"
+    )
+    p.add_argument(
+        "--stages",
+        default="all",
+        help="checkpoints of each run folder: all, latest, spread:N (N evenly spread) or episode counts E1,E2,... "
+        "(default %(default)s)",
+    )
+    p.add_argument("--batches", type=int, default=64, help="batches compared per stage (default %(default)s)")
+    p.add_argument("--num-envs", type=int, default=32, help="episodes per batch (default %(default)s)")
+    p.add_argument(
+        "--fit-batches", type=int, default=100, help="most batches to fit the critics on (default %(default)s)"
+    )
+    p.add_argument("--fit-steps", type=int, default=4, help="critic steps per fit batch (default %(default)s)")
+    p.add_argument(
+        "--plateau",
+        type=float,
+        default=0.01,
+        help="stop fitting once the held-out critic loss improves by less than this fraction (0: never; "
+        "default %(default)s)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of critics, episodes and sampling (default %(default)s)")
+    p.add_argument("--out", default="variance", help="folder for variance.csv/.md/.png (default %(default)s)")
+    p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
+    add_task_flags(p)
+    mark_task_defaults(p)
+    p.set_defaults(run=run)
+
+
+def variance_config(args: argparse.Namespace) -> VarianceConfig:
+    from bitcomm.variance import VarianceConfig
+
+    return VarianceConfig(
+        batches=args.batches,
+        num_envs=args.num_envs,
+        fit_batches=args.fit_batches,
+        fit_steps=args.fit_steps,
+        plateau=args.plateau,
+        seed=args.seed,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from bitcomm.policy_source import resolve_task
+    from bitcomm.variance import (
+        load_stage,
+        markdown_table,
+        measure_stage,
+        parse_stages,
+        plot_variance,
+        select_stages,
+        write_csv,
+    )
+
+    vcfg = variance_config(args)
+    stages = parse_stages(args.stages)
+    files = [file for path in args.paths for file in select_stages(path, stages)]  # fail early, before measuring
+    rows, task = [], None
+    for file in files:
+        stage = load_stage(file)
+        task = resolve_task(args, stage.config.task, label=f"checkpoint {str(file)!r}", strict=True)
+        stage_rows = measure_stage(stage.on_task(task), vcfg)
+        rows += stage_rows
+        if not args.json:
+            message = next(r for r in stage_rows if r.part == "message")
+            print(f"{file}: message variance ratio improved/standard {message.ratio:.3f}", file=sys.stderr)
+    assert task is not None
+    title = f"{task.env.size}x{task.env.size} grid, K = {task.channel.bits}, delay {task.channel.delay}"
+    out = Path(args.out)
+    csv_path = write_csv(rows, out / "variance.csv")
+    md_path = out / "variance.md"
+    md_path.write_text(markdown_table(rows, f"Gradient variance of the two estimators: {title}"))
+    png_path = plot_variance(rows, out / "variance.png", title)
+    if args.json:
+        json.dump([r.to_dict() for r in rows], sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    print(markdown_table(rows), end="")
+    print(f"wrote {csv_path}, {md_path} and {png_path}")
+    return 0
