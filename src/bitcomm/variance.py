@@ -313,7 +313,6 @@ def measure_stage(stage: Stage, vcfg: VarianceConfig) -> list[VarianceRow]:
     cfg = stage.config
     policy = PolicyNet(cfg.task, cfg.model)
     policy.load_state_dict(stage.weights)
-    policy.requires_grad_(True)
     learners = make_critics(cfg, vcfg.seed)
     collector = Collector(cfg.task, vcfg.num_envs)
     generator = torch.Generator().manual_seed(vcfg.seed)
