@@ -242,21 +242,39 @@ def _write_atomic(path: Path, text: str) -> None:
 
 
 def run_status(run: Run) -> str:
-    """`new`, `resume` (a checkpoint short of the budget) or `done`; an error for a folder holding another run."""
+    """`new`, `resume` (a checkpoint short of the budget, which may have changed) or `done` (the budget played);
+    an error for a folder holding another run, or one that played past this budget under another."""
     from bitcomm.checkpoint import CHECKPOINTS, LATEST
 
     latest = run.folder / CHECKPOINTS / LATEST
     if not latest.is_file():
         return "new"
-    record, wanted = _json(run.folder / "config.json"), json.loads(json.dumps(run.train.to_dict()))
-    differs = [k for k in wanted if k not in RESUMABLE and record.get(k) != wanted[k]]
+    recorded, wanted = _flat(_recorded_config(run.folder).to_dict()), _flat(run.train.to_dict())
+    differs = [k for k in wanted if k not in RESUMABLE and recorded.get(k) != wanted[k]]
     if differs:
         raise bad_value("out", str(run.folder), f"it holds a run with other {', '.join(differs)}; use another --out")
-    if record["episodes"] > run.train.episodes:
-        raise bad_value(
-            "episodes", run.train.episodes, f"{run.folder} was trained for {record['episodes']}; use another --out"
-        )
-    return "done" if _json(latest)["episodes"] >= run.train.episodes else "resume"
+    played, budget = _json(latest)["episodes"], run.train.episodes
+    if played < budget:
+        return "resume"
+    if recorded["episodes"] != budget:
+        raise bad_value("episodes", budget, f"{run.folder} has played {played} of a budget of {recorded['episodes']}")
+    return "done"
+
+
+def _recorded_config(folder: Path) -> TrainConfig:
+    """The TrainConfig in a run's config.json; fields added since it was written take their defaults."""
+    from bitcomm.train.config import TrainConfig
+
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    return TrainConfig.from_dict({k: v for k, v in _json(folder / "config.json").items() if k in names})
+
+
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """{"model": {"hidden": 128}} -> {"model.hidden": 128}, so a difference names the option."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
 
 
 def read_evaluation(run: Run, episodes: int, seed: int) -> dict[str, Any] | None:
