@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -34,6 +36,19 @@ def clipped_policy_loss(
 
     per_step = (part(logp_action, old_action, adv.action) + part(logp_message, old_message, adv.message)).sum(-1)
     return -torch.where(valid, per_step, 0.0).sum() / valid.sum().clamp(min=1)
+
+
+class _Forward(NamedTuple):
+    """The policy network's pass over the valid steps `(it, ib)` of columns `cols` of a rollout."""
+
+    cols: torch.Tensor
+    it: torch.Tensor
+    ib: torch.Tensor
+    received: torch.Tensor  # (M, n, slots, K)
+    feats: torch.Tensor  # (M * n, flat)
+    h1: torch.Tensor
+    msg_logits: torch.Tensor
+    move_logits: torch.Tensor
 
 
 class Learner:
@@ -113,18 +128,41 @@ class Learner:
                     stats.setdefault(k, []).append(v)
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
+    def _forward(self, ro: Rollout, cols: torch.Tensor) -> _Forward:
+        """The policy network over every valid step of the episodes in columns `cols`."""
+        policy = self.policy
+        valid = ro.valid[:, cols]
+        it, ib = valid.nonzero(as_tuple=True)
+        received = ro.received[it, cols[ib]]  # (M, n, slots, K)
+        feats = policy.observation_features(ro.planes[it, cols[ib]].flatten(0, 1))
+        h1, h2 = policy.trunk(feats, policy.encode_received(received.flatten(0, 1)))
+        return _Forward(cols, it, ib, received, feats, h1, policy.message_logits(h2), policy.move_logits(h2))
+
+    def _grounding_losses(self, ro: Rollout, fw: _Forward) -> tuple[list[torch.Tensor], dict[str, float]]:
+        """The optional grounding losses (`goal_coef`, `seen_coef`), weighted, with their values for the log."""
+        cfg, policy, S = self.cfg, self.policy, self.cfg.task.env.size
+        goal = ro.goal[fw.cols[fw.ib]]  # (M, n)
+        losses, out = [], {}
+        if cfg.goal_coef > 0:  # privileged: the receiver names its own goal from what it heard
+            h1_heard, _ = policy.trunk(fw.feats, self._heard(ro, fw.cols, fw.it, fw.ib, fw.received, fw.msg_logits))
+            goal_loss = _cell_loss(policy.goal_logits(h1_heard), goal.flatten(), S)
+            losses.append(cfg.goal_coef * goal_loss)
+            out["losses/goal"] = goal_loss.item()
+        if cfg.seen_coef > 0:  # the sender names the goal it observes
+            seen_loss = _cell_loss(policy.seen_logits(fw.h1), goal[:, self.observed].flatten(), S)
+            losses.append(cfg.seen_coef * seen_loss)
+            out["losses/seen"] = seen_loss.item()
+        return losses, out
+
     def _step(self, ro: Rollout, adv: Advantages, cols: torch.Tensor) -> dict[str, float]:
         """One gradient step of policy and critic on the whole episodes in columns `cols`."""
         cfg, policy, head, n = self.cfg, self.policy, self.policy.head, self.n
-        valid = ro.valid[:, cols]
-        it, ib = valid.nonzero(as_tuple=True)
-        bc = cols[ib]
+        fw = self._forward(ro, cols)
+        it, ib, bc = fw.it, fw.ib, cols[fw.ib]
         M = it.shape[0]
+        valid = ro.valid[:, cols]
         T, Bc = valid.shape
-        received = ro.received[it, bc]  # (M, n, slots, K)
-        feats = policy.observation_features(ro.planes[it, bc].flatten(0, 1))
-        h1, h2 = policy.trunk(feats, policy.encode_received(received.flatten(0, 1)))
-        msg_logits, move_logits = policy.message_logits(h2), policy.move_logits(h2)
+        received, msg_logits, move_logits = fw.received, fw.msg_logits, fw.move_logits
 
         def full(x: torch.Tensor) -> torch.Tensor:  # (M, n) sample values -> (T, Bc, n)
             out = torch.zeros(T, Bc, n, dtype=x.dtype)
@@ -144,24 +182,15 @@ class Learner:
         ent_move = -(torch.softmax(move_logits, -1) * torch.log_softmax(move_logits, -1)).sum(-1).mean()
         ent_msg = head.entropy(msg_logits).mean()
         loss = pg - n * (cfg.entropy_move * ent_move + cfg.entropy_message * ent_msg)
-        out = {
-            "losses/policy": pg.item(),
-            "charts/entropy_move": ent_move.item(),
-            "charts/entropy_message": ent_msg.item(),
-        }
-        losses = [loss]
-        S = cfg.task.env.size
-        if cfg.goal_coef > 0:  # privileged: the receiver names its own goal from what it heard
-            h1_heard, _ = policy.trunk(feats, self._heard(ro, cols, it, ib, received, msg_logits))
-            goal_loss = _cell_loss(policy.goal_logits(h1_heard), ro.goal[bc].flatten(), S)
-            losses.append(cfg.goal_coef * goal_loss)
-            out["losses/goal"] = goal_loss.item()
-        if cfg.seen_coef > 0:  # the sender names the goal it observes
-            seen = ro.goal[bc][:, self.observed].flatten()
-            seen_loss = _cell_loss(policy.seen_logits(h1), seen, S)
-            losses.append(cfg.seen_coef * seen_loss)
-            out["losses/seen"] = seen_loss.item()
-        self._clipped_step(self.opt_policy, list(policy.parameters()), losses)
+        grounding, out = self._grounding_losses(ro, fw)
+        out.update(
+            {
+                "losses/policy": pg.item(),
+                "charts/entropy_move": ent_move.item(),
+                "charts/entropy_message": ent_msg.item(),
+            }
+        )
+        self._clipped_step(self.opt_policy, list(policy.parameters()), [loss, *grounding])
 
         # critic: regress on Q_t for every query it answers
         state, returns = ro.state[it, bc], adv.returns[it, bc]

@@ -1,0 +1,189 @@
+"""The yardstick of issue 4: how fast does a recipe learn the task, seed by seed?
+
+Trains a named recipe (improved + bitwise unless told otherwise) on a task for S seeds and prints,
+per seed, the environment episodes and training wall seconds until the mean episode length of
+sampled play falls below 2x and below 1.15x the oracle. A rung counts when the rolling mean over
+the last 1,000 training episodes is below it AND `bitcomm eval` on 2,000 fixed episodes (sampled,
+seed 12345) confirms it. Training runs in chunks of `--chunk` episodes, each one resuming the run's
+checkpoint, so the check happens between chunks; evaluation time is not counted as training time.
+Seeds run `--jobs` at a time, each in its own process with `--threads` torch threads.
+The last line printed is one JSON object.
+
+    python benchmarks/solve.py --size 4 --bits 4 --minutes 5            # rung 1
+    python benchmarks/solve.py --minutes 15                             # rung 2 (the paper's 10x10)
+    python benchmarks/solve.py --recipe paper --minutes 15              # the paper's own recipe
+    python benchmarks/solve.py --set gamma=0.8 --set lr=3e-4            # any TrainConfig option
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import multiprocessing as mp
+import time
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+RUNGS = (("2x", 2.0), ("1.15x", 1.15))
+EVAL_SEED = 12345
+
+
+def _parse_value(text: str) -> Any:
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(text.lower(), text)
+
+
+def _last_row(run: Path) -> dict[str, str]:
+    with (run / "metrics.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return rows[-1]
+
+
+def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
+    """Train one seed chunk by chunk until the last rung is confirmed or the budget is spent."""
+    import torch
+
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.evaluation import evaluate_checkpoint
+    from bitcomm.train.config import make_train_config
+    from bitcomm.train.run import train
+
+    torch.set_num_threads(args["threads"])
+    task = TaskConfig(EnvConfig(size=args["size"]), ChannelConfig(bits=args["bits"]))
+    run = Path(args["out"]) / f"seed{seed}"
+    overrides = dict(args["set"])
+    cfg = make_train_config(
+        args["recipe"],
+        task,
+        estimator=args["estimator"],
+        messages=args["messages"],
+        seed=seed,
+        checkpoint_seconds=1e9,
+        **overrides,
+    )
+    oracle = None
+    reached: dict[str, dict[str, float] | None] = {name: None for name, _ in RUNGS}
+    checks: list[dict[str, float]] = []
+    episodes, wall, resume = 0, 0.0, False
+    while wall < args["minutes"] * 60 and episodes < args["max_episodes"]:
+        target = episodes + args["chunk"]
+        train(_with_budget(cfg, target), run, resume=resume, progress=False)
+        resume = True
+        row = _last_row(run)
+        episodes, wall = int(row["episodes"]), float(row["wall_s"])
+        rolling = float(row["charts/episode_length_rolling"])
+        if oracle is None:
+            oracle = json.loads((run / "config.json").read_text())["oracle_mean_episode_length"]
+        pending = [(name, k) for name, k in RUNGS if reached[name] is None]
+        if pending and episodes >= 1000 and rolling < pending[0][1] * oracle:
+            sampled = evaluate_checkpoint(run, args["eval_episodes"], EVAL_SEED).mean_episode_length
+            checks.append({"episodes": episodes, "rolling": rolling, "eval": sampled})
+            for name, k in pending:
+                if sampled < k * oracle:
+                    reached[name] = {"episodes": episodes, "wall_s": round(wall, 1), "eval": round(sampled, 3)}
+        if reached[RUNGS[-1][0]] is not None:
+            break
+    final = {
+        kind: evaluate_checkpoint(run, args["eval_episodes"], EVAL_SEED, greedy=kind == "greedy").mean_episode_length
+        for kind in ("sampled", "greedy")
+    }
+    return {
+        "seed": seed,
+        "oracle": oracle,
+        "episodes": episodes,
+        "wall_s": round(wall, 1),
+        "reached": reached,
+        "final_eval": {k: round(v, 3) for k, v in final.items()},
+        "final_rolling": round(float(_last_row(run)["charts/episode_length_rolling"]), 3),
+        "checks": checks,
+        "run": str(run),
+    }
+
+
+def _with_budget(cfg: Any, episodes: int) -> Any:
+    from dataclasses import replace
+
+    return replace(cfg, episodes=episodes)
+
+
+def _solve_star(item: tuple[dict[str, Any], int]) -> dict[str, Any]:
+    return solve_seed(*item)
+
+
+def main() -> None:
+    from bitcomm.train.config import MODEL_OPTIONS, TrainConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--recipe", default="fast")
+    ap.add_argument("--estimator", default="improved")
+    ap.add_argument("--messages", default="bitwise")
+    ap.add_argument("--size", type=int, default=10)
+    ap.add_argument("--bits", type=int, default=None, help="default: the task's default for the size")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--minutes", type=float, default=15.0, help="training wall-time budget per seed")
+    ap.add_argument("--max-episodes", type=int, default=10**9)
+    ap.add_argument("--chunk", type=int, default=1024, help="episodes between checks")
+    ap.add_argument("--eval-episodes", type=int, default=2000)
+    ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads per seed")
+    ap.add_argument("--out", type=Path, default=None, help="default runs/solve/<recipe>-<size>x<size>-<time>")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a TrainConfig option")
+    a = ap.parse_args()
+    options = {f.name for f in fields(TrainConfig)} | MODEL_OPTIONS
+    overrides = []
+    for item in a.set:
+        name, _, value = item.partition("=")
+        if name not in options or not value:
+            ap.error(f"--set {item!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(options))}")
+        overrides.append((name, _parse_value(value)))
+    if a.bits is None:
+        from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+
+        a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
+    out = a.out or Path("runs/solve") / f"{a.recipe}-{a.size}x{a.size}-{time.strftime('%Y%m%d-%H%M%S')}"
+    args = {**vars(a), "out": str(out), "set": overrides}
+    seeds = range(a.first_seed, a.first_seed + a.seeds)
+    print(
+        f"solve: recipe {a.recipe}, {a.estimator} + {a.messages}, {a.size}x{a.size}, {a.bits} bits, "
+        f"options {dict(overrides)}, seeds {list(seeds)}, {a.minutes} min each, out {out}",
+        flush=True,
+    )
+    results = []
+    with mp.get_context("spawn").Pool(min(a.jobs, a.seeds)) as pool:
+        for r in pool.imap(_solve_star, [(args, s) for s in seeds]):
+            rungs = "  ".join(
+                f"{name}: " + (f"{v['episodes']} ep / {v['wall_s']} s" if v else "not reached")
+                for name, v in r["reached"].items()
+            )
+            print(
+                f"seed {r['seed']}: {rungs}  | after {r['episodes']} ep / {r['wall_s']} s: "
+                f"sampled {r['final_eval']['sampled']}, greedy {r['final_eval']['greedy']} "
+                f"(oracle {r['oracle']:.2f})",
+                flush=True,
+            )
+            results.append(r)
+    summary = {
+        "recipe": a.recipe,
+        "estimator": a.estimator,
+        "messages": a.messages,
+        "size": a.size,
+        "bits": a.bits,
+        "options": dict(overrides),
+        "minutes": a.minutes,
+        "threads": a.threads,
+        "jobs": a.jobs,
+        "seeds": [{k: v for k, v in r.items() if k != "checks"} for r in results],
+    }
+    (out / "summary.json").write_text(json.dumps({**summary, "checks": [r["checks"] for r in results]}, indent=1))
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
