@@ -17,7 +17,7 @@ import pytest
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.deploy import DeployError, episode_set, place_episode, run_deploy
 from bitcomm.deploy import world as world_module
-from bitcomm.deploy.protocol import pack_datagram, task_from_dict, task_to_dict, unpack_datagram
+from bitcomm.deploy.protocol import pack_datagram, unpack_datagram
 from bitcomm.envs.core import GoalExchangeCore
 from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.evaluation import evaluate, run_first_episodes
@@ -36,7 +36,7 @@ def test_wire_format_round_trips() -> None:
     np.testing.assert_array_equal(d.bits, bits)
     assert unpack_datagram(b"junk") is None and unpack_datagram(b"XXXX" + bytes(30)) is None
     task = TaskConfig(EnvConfig(n_agents=3, observes=(2, 0, 1)), ChannelConfig(recipients=((2, 1), (0,), (1,))))
-    assert task_from_dict(json.loads(json.dumps(task_to_dict(task)))) == task
+    assert TaskConfig.from_dict(json.loads(json.dumps(task.to_dict()))) == task
 
 
 @pytest.mark.parametrize("task", [TINY, TaskConfig(EnvConfig(size=5, n_agents=3, observes=(2, 0, 1)))])

@@ -7,7 +7,8 @@ bad value fails early with one line that names it (see `bitcomm.errors`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -122,6 +123,15 @@ class TaskConfig:
             for x in rec:
                 if not 0 <= x < n or x == j:
                     raise bad_value("recipients", recipients, f"recipients must be other agents in 0..{n - 1}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain values for JSON: checkpoints, the deploy wire and exported policy cards carry the task this way."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TaskConfig:
+        """Inverse of `to_dict`; JSON's lists (`observes`, `recipients`) become tuples in the configs' own checks."""
+        return cls(EnvConfig(**d["env"]), ChannelConfig(**d["channel"]))
 
     @property
     def recipient_lists(self) -> tuple[tuple[int, ...], ...]:

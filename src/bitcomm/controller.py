@@ -21,13 +21,9 @@ import torch
 from bitcomm.agent import act
 from bitcomm.agent_policies import agent_batch
 from bitcomm.checkpoint import load_weights
-from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.config import TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.networks import ModelConfig, PolicyNet
-
-
-def task_from_dict(d: dict[str, Any]) -> TaskConfig:
-    return TaskConfig(EnvConfig(**d["env"]), ChannelConfig(**d["channel"]))
 
 
 def model_from_dict(d: dict[str, Any]) -> ModelConfig:
@@ -59,7 +55,7 @@ class Controller:
         weights, info = load_weights(path)
         config = info["config"]
         try:
-            net = PolicyNet(task_from_dict(config["task"]), model_from_dict(config["model"]))
+            net = PolicyNet(TaskConfig.from_dict(config["task"]), model_from_dict(config["model"]))
             net.load_state_dict(weights["policy"])
         except (KeyError, TypeError, RuntimeError) as err:
             raise ConfigError(

@@ -22,7 +22,6 @@ from typing import Any
 import torch
 
 from bitcomm.controller import Controller
-from bitcomm.deploy.protocol import task_to_dict
 from bitcomm.envs.core import MOVE_NAMES
 from bitcomm.onnx_policy import FORMAT, INPUTS, METADATA_KEY, OUTPUTS, VERSION, require, sidecar_path
 
@@ -50,7 +49,7 @@ def policy_card(controller: Controller) -> dict[str, Any]:
         "inputs": {INPUTS[0]: ["N", 2, S, S], INPUTS[1]: ["N", slots, K]},
         "outputs": {OUTPUTS[0]: ["N", len(MOVE_NAMES)], OUTPUTS[1]: ["N", head.out_features]},
         "opset": OPSET,
-        "task": task_to_dict(task),
+        "task": task.to_dict(),
     }
 
 

@@ -23,7 +23,6 @@ import numpy as np
 
 from bitcomm.agent_policies import agent_batch
 from bitcomm.config import TaskConfig
-from bitcomm.deploy.protocol import task_from_dict
 from bitcomm.envs.channel import index_to_bits
 from bitcomm.errors import ConfigError
 
@@ -82,7 +81,7 @@ class OnnxController:
         self.session = session
         self.metadata = metadata
         """The policy card written by `bitcomm export` (also in the `.json` sidecar)."""
-        self.task: TaskConfig = task_from_dict(metadata["task"])
+        self.task: TaskConfig = TaskConfig.from_dict(metadata["task"])
         self.messages: str = metadata["messages"]
         self.rng = np.random.default_rng(seed)
 

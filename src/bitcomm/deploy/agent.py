@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from bitcomm.deploy.protocol import LineSocket, PeerGone, decode_array, pack_datagram, task_from_dict, unpack_datagram
+from bitcomm.config import TaskConfig
+from bitcomm.deploy.protocol import LineSocket, PeerGone, decode_array, pack_datagram, unpack_datagram
 from bitcomm.policy_source import PolicySource
 
 
@@ -76,7 +77,7 @@ def run_agent(world: tuple[str, int], agent: int, token: str) -> int:
     ctl.send({"type": "hello", "agent": agent, "token": token, "udp_port": udp.getsockname()[1]})
     cfg: dict[str, Any] = ctl.recv(time.monotonic() + 60)
     stop_at = time.monotonic() + float(cfg["time_left_s"])
-    task = task_from_dict(cfg["task"])
+    task = TaskConfig.from_dict(cfg["task"])
     K, S, delay = task.channel.bits, task.env.size, task.channel.delay
     seeds = np.random.SeedSequence(int(cfg["seed"]), spawn_key=(agent,)).spawn(2)
     policy = PolicySource.from_dict(cfg["policy"]).build(task, seed=seeds[0])

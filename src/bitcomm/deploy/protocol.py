@@ -13,7 +13,6 @@ Control, world to agent and back: one JSON object per line over a TCP connection
 from __future__ import annotations
 
 import base64
-import dataclasses
 import json
 import select
 import socket
@@ -22,8 +21,6 @@ import time
 from typing import Any, NamedTuple
 
 import numpy as np
-
-from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
 MAGIC = b"BCM1"
 HEADER = struct.Struct("!4sIHIIIB")
@@ -54,19 +51,7 @@ def unpack_datagram(data: bytes) -> Datagram | None:
     return Datagram(run_id, sender, episode, step, seq, np.unpackbits(payload)[:k])
 
 
-# ---------------------------------------------------------------------- task and arrays as JSON
-def task_to_dict(task: TaskConfig) -> dict[str, Any]:
-    return dataclasses.asdict(task)
-
-
-def task_from_dict(data: dict[str, Any]) -> TaskConfig:
-    """Inverse of `task_to_dict` (JSON turns tuples into lists; the configs turn them back)."""
-    env = dict(data["env"])
-    if env.get("observes") is not None:
-        env["observes"] = tuple(env["observes"])
-    return TaskConfig(EnvConfig(**env), ChannelConfig(**data["channel"]))
-
-
+# ---------------------------------------------------------------------- arrays as JSON
 def encode_array(a: np.ndarray) -> str:
     return base64.b64encode(np.ascontiguousarray(a, dtype=np.uint8).tobytes()).decode("ascii")
 

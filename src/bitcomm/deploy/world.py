@@ -30,7 +30,7 @@ from typing import IO, Any
 import numpy as np
 
 from bitcomm.config import TaskConfig
-from bitcomm.deploy.protocol import LineSocket, PeerGone, encode_array, task_to_dict
+from bitcomm.deploy.protocol import LineSocket, PeerGone, encode_array
 from bitcomm.envs.core import N_MOVES, GoalExchangeCore
 from bitcomm.evaluation import EvalResult, seeded_episode_envs
 from bitcomm.policy_source import PolicySource
@@ -206,7 +206,7 @@ def run_deploy(
         slot_senders = task.slot_senders
         for i in range(n):
             agents.send(i, {
-                "type": "config", "task": task_to_dict(task), "policy": source.to_dict(), "seed": seed,
+                "type": "config", "task": task.to_dict(), "policy": source.to_dict(), "seed": seed,
                 "run_id": run_id, "deadline_ms": deadline_ms, "time_left_s": agents.end - time.monotonic() + 2.0,
                 "flip_prob": task.channel.flip_prob, "drop_prob": task.channel.drop_prob,
                 "peers": [agents.udp_ports[x] for x in task.recipient_lists[i]],

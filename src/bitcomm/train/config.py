@@ -13,7 +13,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.config import TaskConfig
 from bitcomm.errors import bad_value
 from bitcomm.estimators import ESTIMATORS
 from bitcomm.heads import MESSAGE_HEADS
@@ -101,7 +101,7 @@ class TrainConfig:
         model = dict(d.pop("model"))
         model["conv_channels"] = tuple(model["conv_channels"])
         return cls(
-            task=TaskConfig(EnvConfig(**task["env"]), ChannelConfig(**task["channel"])),
+            task=TaskConfig.from_dict(task),
             model=ModelConfig(**model),
             **d,
         )
