@@ -101,7 +101,7 @@ def test_termination_when_all_on_goal_then_self_reset() -> None:
     np.testing.assert_array_equal(result.truncated, [False, False, False])
     np.testing.assert_allclose(result.rewards[0], [0.0, 0.0], atol=1e-6)
     fin = result.finished
-    np.testing.assert_array_equal(fin.index, [0])
+    np.testing.assert_array_equal(fin.env_index, [0])
     np.testing.assert_array_equal(fin.length, [2])
     np.testing.assert_allclose(fin.team_return, [-0.8 + 0.0], atol=1e-6)
     np.testing.assert_array_equal(fin.success, [True])
@@ -117,12 +117,12 @@ def test_truncation_at_max_steps() -> None:
     for step in range(3):
         result = core.step(np.zeros((2, 2), dtype=np.int64))  # staying never reaches a goal (start != goal)
         if step < 2:
-            assert result.finished.index.size == 0
+            assert result.finished.env_index.size == 0
             assert not result.truncated.any()
     np.testing.assert_array_equal(result.truncated, [True, True])
     np.testing.assert_array_equal(result.terminated, [False, False])
     fin = result.finished
-    np.testing.assert_array_equal(fin.index, [0, 1])
+    np.testing.assert_array_equal(fin.env_index, [0, 1])
     np.testing.assert_array_equal(fin.length, [3, 3])
     np.testing.assert_allclose(fin.team_return, [3 * -0.8] * 2, atol=1e-5)
     np.testing.assert_array_equal(fin.success, [False, False])
@@ -137,7 +137,7 @@ def test_autoreset_off_keeps_terminal_state_until_reset() -> None:
         [[cell(5, 8), cell(9, 9)], [cell(9, 9), cell(9, 8)]],
     )
     result = core.step(np.array([[RIGHT, DOWN], [STAY, STAY]]))
-    np.testing.assert_array_equal(result.finished.index, [0])
+    np.testing.assert_array_equal(result.finished.env_index, [0])
     np.testing.assert_array_equal(core.pos[0], core.goal[0])  # the terminal observation is still there
     np.testing.assert_array_equal(core.t, [1, 1])
     assert_planes_match(core)
@@ -158,13 +158,13 @@ def test_random_play_keeps_planes_consistent_and_reports_every_episode() -> None
         t_before = core.t.copy()
         result = core.step(rng.integers(0, 5, size=(B, 3)))
         fin = result.finished
-        np.testing.assert_array_equal(fin.length, t_before[fin.index] + 1)
+        np.testing.assert_array_equal(fin.length, t_before[fin.env_index] + 1)
         assert (fin.length <= cfg.max_steps).all()
-        np.testing.assert_array_equal(fin.success, result.terminated[fin.index])
+        np.testing.assert_array_equal(fin.success, result.terminated[fin.env_index])
         done = result.terminated | result.truncated
-        np.testing.assert_array_equal(np.flatnonzero(done), fin.index)
-        started[fin.index] += 1
-        finished += fin.index.size
+        np.testing.assert_array_equal(np.flatnonzero(done), fin.env_index)
+        started[fin.env_index] += 1
+        finished += fin.env_index.size
         assert (core.pos != core.goal).any(axis=1).all()  # new and running episodes are never already won
         assert_planes_match(core)
     assert finished == started.sum() > B  # many episodes ended, terminated and truncated alike

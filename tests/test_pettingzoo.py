@@ -95,7 +95,7 @@ def test_oracle_episode_matches_the_vectorized_env(kwargs: dict[str, Any]) -> No
             moves, bits = oracle(vec.observe())
             result, _ = vec.step(moves, bits)
             vec_rewards.append(result.rewards[0].copy())
-            if result.finished.index.size:
+            if result.finished.env_index.size:
                 vec_length = int(result.finished.length[0])
                 break
 

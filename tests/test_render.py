@@ -25,7 +25,7 @@ def episode_length(task: TaskConfig, seed: int) -> int:
     oracle = OraclePolicy(task)
     while True:
         result, _ = env.step(*oracle(env.observe()))
-        if result.finished.index.size:
+        if result.finished.env_index.size:
             return int(result.finished.length[0])
 
 

@@ -72,7 +72,7 @@ def collect_messages(
         sent_bits.append(bits.reshape(-1, task.channel.bits))
         ring_goal[k], ring_episode[k] = seen, episode
         result, _ = env.step(moves, bits)
-        episode[result.finished.index] += 1
+        episode[result.finished.env_index] += 1
     return MessageSamples(
         np.concatenate(sent_goal), np.concatenate(sent_bits).astype(np.uint8),
         np.concatenate(deliv_goal), np.concatenate(recv_bits).astype(np.uint8),

@@ -65,7 +65,7 @@ def play_first_episodes(env: VecGoalExchange, policy: Policy) -> Iterator[FirstE
         moves, bits = policy(obs)
         result, dropped = env.step(moves, bits)
         yield FirstEpisodeStep(obs, moves, bits, result, dropped, active.copy())
-        active[result.finished.index] = False
+        active[result.finished.env_index] = False
 
 
 def seeded_episode_envs(task: TaskConfig, episodes: int, seed: int) -> Iterator[tuple[int, VecGoalExchange]]:
@@ -89,8 +89,8 @@ def run_first_episodes(
     for lo, env in seeded_episode_envs(task, episodes, seed):
         for step in play_first_episodes(env, policy):
             fin = step.result.finished
-            first = step.active[fin.index]
-            idx = lo + fin.index[first]
+            first = step.active[fin.env_index]
+            idx = lo + fin.env_index[first]
             lengths[idx], returns[idx], success[idx] = fin.length[first], fin.team_return[first], fin.success[first]
     return lengths, returns, success
 

@@ -103,7 +103,7 @@ class OneHotHead:
 
 
 MessageHead = BitwiseHead | OneHotHead
-MESSAGE_HEADS = {"bitwise": BitwiseHead, "onehot": OneHotHead}
+MESSAGE_HEADS: dict[str, type[MessageHead]] = {"bitwise": BitwiseHead, "onehot": OneHotHead}
 
 
 def make_head(name: str, bits: int) -> MessageHead:

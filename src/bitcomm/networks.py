@@ -54,6 +54,8 @@ def _coord_planes(size: int) -> torch.Tensor:
 class PolicyNet(nn.Module):
     """pi(a | o, m_rec) and Pm(m | o, m_rec), sampled independently (paper IV)."""
 
+    coords: torch.Tensor  # a buffer; declared so that type checkers see a tensor, not `Tensor | Module`
+
     def __init__(self, task: TaskConfig, cfg: ModelConfig) -> None:
         super().__init__()
         self.task, self.cfg = task, cfg

@@ -83,8 +83,8 @@ class Collector:
             self.dropped[t] = step.dropped
             self.valid[t] = step.active
             self.done[t] = False
-            first = step.active[fin.index]
-            idx = fin.index[first]
+            first = step.active[fin.env_index]
+            idx = fin.env_index[first]
             self.done[t, idx] = True
             length[idx], team_return[idx], success[idx] = fin.length[first], fin.team_return[first], fin.success[first]
             t += 1

@@ -235,7 +235,7 @@ def run_deploy(
                         raise DeployError(f"agent {i} chose move {move}, outside 0..{N_MOVES - 1}")
                     moves[0, i] = move
                 fin = core.step(moves).finished
-                if fin.index.size:
+                if fin.env_index.size:
                     outcome = EpisodeOutcome(
                         e, int(fin.length[0]), float(fin.team_return[0]), bool(fin.success[0]), time.perf_counter() - t0
                     )

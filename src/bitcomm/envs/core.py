@@ -37,7 +37,7 @@ STEP_PENALTY, CLOSER_BONUS, IDLE_PENALTY = -0.3, 0.2, -0.1
 class FinishedEpisodes(NamedTuple):
     """Episodes that ended at this step: their batch slots and their figures."""
 
-    index: np.ndarray  # (F,) int, which of the B episodes ended
+    env_index: np.ndarray  # (F,) int, which of the B episodes ended (`index` would shadow `tuple.index`)
     length: np.ndarray  # (F,) int, steps taken
     team_return: np.ndarray  # (F,) float, undiscounted sum of team rewards
     success: np.ndarray  # (F,) bool, every agent on its goal before truncation

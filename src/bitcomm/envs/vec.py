@@ -56,9 +56,9 @@ class VecGoalExchange:
         """Apply `(B, n)` moves and send `(B, n, K)` bits; returns the step and `(B, n)` dropped flags."""
         result = self.core.step(moves)
         dropped = self.channel.transmit(messages)
-        if result.finished.index.size and self.autoreset:
+        if result.finished.env_index.size and self.autoreset:
             done = np.zeros(self.num_envs, dtype=bool)
-            done[result.finished.index] = True
+            done[result.finished.env_index] = True
             self.channel.reset(done)
         self._received = self.channel.received()
         return result, dropped

@@ -118,7 +118,7 @@ class Learner:
         batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
         adv = self.estimator(batch, cfg.gamma, cfg.task.channel.delay)
         if cfg.adv_norm:
-            adv = Advantages(*(_scaled(a, ro.valid) for a in adv[:2]), adv.returns)
+            adv = adv._replace(action=_scaled(adv.action, ro.valid), message=_scaled(adv.message, ro.valid))
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
         for _ in range(cfg.epochs):
