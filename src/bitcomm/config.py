@@ -41,7 +41,7 @@ class EnvConfig:
         if not isinstance(self.size, int) or self.size < 2:
             raise bad_value("size", self.size, "the grid must be at least 2 cells a side")
         if not isinstance(self.n_agents, int) or self.n_agents < 2:
-            raise bad_value("n_agents", self.n_agents, "at least 2 agents are needed")
+            raise bad_value("agents", self.n_agents, "at least 2 agents are needed")
         if not isinstance(self.max_steps, int) or self.max_steps < 1:
             raise bad_value("max_steps", self.max_steps, "must be an integer >= 1")
         _check_probability("act_fail_prob", self.act_fail_prob)
