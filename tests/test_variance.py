@@ -18,9 +18,9 @@ from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.estimators import Advantages, policy_gradient_loss
-from bitcomm.networks import PolicyNet
 from bitcomm.rollout import Collector
 from bitcomm.train.config import make_train_config
+from bitcomm.train.learner import Learner
 from bitcomm.train.run import train
 from bitcomm.variance import (
     PARTS,
@@ -29,7 +29,6 @@ from bitcomm.variance import (
     cosine,
     gradient_parts,
     load_stage,
-    log_probs,
     measure_stage,
     parse_stages,
     select_stages,
@@ -67,10 +66,11 @@ def test_log_probs_are_those_of_acting(run_dir: Path) -> None:
     """Recomputed with gradients, the log-probabilities of the sampled moves and messages equal the
     ones the collector recorded while acting: the estimates differentiate the policy that played."""
     stage = load_stage(run_dir)
-    policy = PolicyNet(TINY, stage.config.model)
-    policy.load_state_dict(stage.weights)
+    learner = Learner(stage.config)
+    learner.policy.load_state_dict(stage.weights)
+    policy = learner.policy
     ro = Collector(TINY, 8).collect(policy, __import__("numpy").random.SeedSequence(3), torch.Generator())
-    logp_move, logp_message = log_probs(policy, ro)
+    logp_move, logp_message = learner.log_probs(ro)
     v = ro.valid
     torch.testing.assert_close(logp_move[v], ro.logp_move[v])
     torch.testing.assert_close(logp_message[v], ro.logp_message[v])

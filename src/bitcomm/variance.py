@@ -15,8 +15,9 @@ paper proves the improved message part has the lower variance. Both read the sam
 samples), so a difference between them is not sampling luck. The estimates are eq. 7 and 8 as
 written: no advantage normalisation, no clipping, one gradient per batch.
 
-The critics, baselines and advantages are the trainer's own (`Learner.critic_values`,
-`Learner.baselines`, the estimator registry), so what is measured is what training uses.
+The critics, their loss, the baselines, the advantages and the log-probabilities are the trainer's
+own (`Learner.critic_loss`, `Learner.baselines`, the estimator registry, `Learner.log_probs`), so what
+is measured is what training uses.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from bitcomm.checkpoint import checkpoints, load_weights
 from bitcomm.config import TaskConfig
@@ -184,21 +184,6 @@ def make_critics(cfg: TrainConfig, seed: int) -> dict[str, Learner]:
     return learners
 
 
-def critic_loss(learner: Learner, ro: Rollout, returns: torch.Tensor) -> torch.Tensor:
-    """The trainer's critic regression: MSE of every query the critic answers against Q_t.
-
-    The same queries as `Learner._step` (action baselines, plus message baselines when a message
-    has several recipients); a public `Learner.critic_loss` would let both share this.
-    """
-    it, ib = ro.valid.nonzero(as_tuple=True)
-    state, moves, received = ro.state[it, ib], ro.moves[it, ib], ro.received[it, ib]
-    values = [learner.critic_values(state, moves, received, *learner._action_queries())]
-    if not learner.single_recipient:
-        values.append(learner.critic_values(state, moves, received, *learner._message_queries()))
-    v = torch.cat(values, 1)
-    return F.mse_loss(v, returns[it, ib][:, None].expand_as(v))
-
-
 def returns_of(ro: Rollout, cfg: TrainConfig) -> torch.Tensor:
     return discounted_returns(ro.rewards, ro.done, ro.valid, cfg.gamma)
 
@@ -219,10 +204,11 @@ def fit_critics(
     w = PLATEAU_WINDOW
     for k in range(vcfg.fit_batches):
         ro = collector.collect(policy, np.random.SeedSequence(vcfg.seed, spawn_key=(0, k)), generator)
+        it, ib = ro.valid.nonzero(as_tuple=True)
         for name, learner in learners.items():
             returns = returns_of(ro, learner.cfg)
             for step in range(vcfg.fit_steps):
-                loss = critic_loss(learner, ro, returns)
+                loss = learner.critic_loss(ro, it, ib, returns)
                 if step == 0:
                     held_out[name].append(loss.item())
                 learner.opt_critic.zero_grad()
@@ -233,26 +219,6 @@ def fit_critics(
             if all(np.mean(h[-w:]) > (1 - vcfg.plateau) * np.mean(h[-2 * w : -w]) for h in held_out.values()):
                 return k + 1
     return vcfg.fit_batches
-
-
-def log_probs(policy: PolicyNet, ro: Rollout) -> tuple[torch.Tensor, torch.Tensor]:
-    """Differentiable `(T, B, n)` log pi(a_t) and log Pm(m_t) of the rollout's samples (0 where invalid).
-
-    The computation of `Learner._step` and `bitcomm.agent.act`; a public `Learner.log_probs` would
-    let the three share it.
-    """
-    it, ib = ro.valid.nonzero(as_tuple=True)
-    T, B, n = ro.moves.shape
-    move_logits, message_logits = policy(ro.planes[it, ib].flatten(0, 1), ro.received[it, ib].flatten(0, 1))
-    logp_move = torch.log_softmax(move_logits, -1).gather(-1, ro.moves[it, ib].view(-1, 1))[:, 0]
-    logp_message = policy.head.log_prob(message_logits, ro.bits[it, ib].flatten(0, 1))
-
-    def full(x: torch.Tensor) -> torch.Tensor:
-        out = torch.zeros(T, B, n, dtype=x.dtype)
-        out[it, ib] = x.view(-1, n)
-        return out
-
-    return full(logp_move), full(logp_message)
 
 
 def gradient_parts(
@@ -311,9 +277,10 @@ def cosine(a: torch.Tensor, b: torch.Tensor) -> float:
 def measure_stage(stage: Stage, vcfg: VarianceConfig) -> list[VarianceRow]:
     """Fit both critics at the stage's frozen policy, then compare the estimators on `batches` batches."""
     cfg = stage.config
-    policy = PolicyNet(cfg.task, cfg.model)
-    policy.load_state_dict(stage.weights)
     learners = make_critics(cfg, vcfg.seed)
+    player = learners["standard"]  # holds the stage's policy: it plays, and its log-probabilities are differentiated
+    player.policy.load_state_dict(stage.weights)
+    policy = player.policy
     collector = Collector(cfg.task, vcfg.num_envs)
     generator = torch.Generator().manual_seed(vcfg.seed)
     fitted = fit_critics(learners, policy, collector, vcfg, generator)
@@ -324,14 +291,14 @@ def measure_stage(stage: Stage, vcfg: VarianceConfig) -> list[VarianceRow]:
         # rollout: fresh episodes, the policy and the critics frozen
         ro = collector.collect(policy, np.random.SeedSequence(vcfg.seed, spawn_key=(1, k)), generator)
         it, ib = ro.valid.nonzero(as_tuple=True)
-        logp_move, logp_message = log_probs(policy, ro)
+        logp_move, logp_message = player.log_probs(ro)
         for name, learner in learners.items():
             # baselines and advantages, exactly as the trainer computes them
             b_action, b_message = learner.baselines(ro, it, ib)
             batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
             adv = learner.estimator(batch, cfg.gamma, cfg.task.channel.delay)
             with torch.no_grad():
-                critic_mse[name].append(critic_loss(learner, ro, adv.returns).item())
+                critic_mse[name].append(learner.critic_loss(ro, it, ib, adv.returns).item())
             for part, g in gradient_parts(policy, logp_move, logp_message, adv, ro.valid).items():
                 moments[name, part].add(g)
 

@@ -110,6 +110,16 @@ class Learner:
             b_message[it, ib] = self.critic_values(state, moves, received, *self._message_queries())
         return b_action, b_message
 
+    def critic_loss(self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
+        """MSE to Q_t `returns (T, B)` of every query the critic answers (action baselines, plus message
+        baselines when a message has several recipients) at the rollout's steps `(it, ib)`."""
+        state, moves, received = ro.state[it, ib], ro.moves[it, ib], ro.received[it, ib]
+        values = [self.critic_values(state, moves, received, *self._action_queries())]
+        if not self.single_recipient:
+            values.append(self.critic_values(state, moves, received, *self._message_queries()))
+        v = torch.cat(values, 1)
+        return F.mse_loss(v, returns[it, ib][:, None].expand_as(v))
+
     # ---------------------------------------------------------------- update
     def update(self, ro: Rollout, generator: torch.Generator | None = None) -> dict[str, float]:
         cfg = self.cfg
@@ -138,6 +148,23 @@ class Learner:
         h1, h2 = policy.trunk(feats, policy.encode_received(received.flatten(0, 1)))
         return _Forward(cols, it, ib, received, feats, h1, policy.message_logits(h2), policy.move_logits(h2))
 
+    def log_probs(self, ro: Rollout, fw: _Forward | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Differentiable `(T, Bc, n)` log pi(a_t) and log Pm(m_t) of the moves and messages the rollout
+        sampled, over the columns of the pass `fw` (default: one over the whole rollout); 0 where invalid."""
+        if fw is None:
+            fw = self._forward(ro, torch.arange(ro.valid.shape[1]))
+        it, ib, bc = fw.it, fw.ib, fw.cols[fw.ib]
+        M, n = it.shape[0], self.n
+        logp_move = torch.log_softmax(fw.move_logits, -1).gather(-1, ro.moves[it, bc].view(-1, 1)).view(M, n)
+        logp_msg = self.policy.head.log_prob(fw.msg_logits, ro.bits[it, bc].flatten(0, 1)).view(M, n)
+
+        def full(x: torch.Tensor) -> torch.Tensor:  # (M, n) sample values -> (T, Bc, n)
+            out = torch.zeros(ro.valid.shape[0], fw.cols.shape[0], n, dtype=x.dtype)
+            out[it, ib] = x
+            return out
+
+        return full(logp_move), full(logp_msg)
+
     def _grounding_losses(self, ro: Rollout, fw: _Forward) -> tuple[list[torch.Tensor], dict[str, float]]:
         """The optional grounding losses (`goal_coef`, `seen_coef`), weighted, with their values for the log."""
         cfg, policy, S = self.cfg, self.policy, self.cfg.task.env.size
@@ -158,20 +185,9 @@ class Learner:
         """One gradient step of policy and critic on the whole episodes in columns `cols`."""
         cfg, policy, head, n = self.cfg, self.policy, self.policy.head, self.n
         fw = self._forward(ro, cols)
-        it, ib, bc = fw.it, fw.ib, cols[fw.ib]
-        M = it.shape[0]
         valid = ro.valid[:, cols]
-        T, Bc = valid.shape
-        received, msg_logits, move_logits = fw.received, fw.msg_logits, fw.move_logits
-
-        def full(x: torch.Tensor) -> torch.Tensor:  # (M, n) sample values -> (T, Bc, n)
-            out = torch.zeros(T, Bc, n, dtype=x.dtype)
-            out[it, ib] = x
-            return out
-
-        moves, bits = ro.moves[it, bc], ro.bits[it, bc]
-        logp_move = full(torch.log_softmax(move_logits, -1).gather(-1, moves.view(-1, 1)).view(M, n))
-        logp_msg = full(head.log_prob(msg_logits, bits.flatten(0, 1)).view(M, n))
+        msg_logits, move_logits = fw.msg_logits, fw.move_logits
+        logp_move, logp_msg = self.log_probs(ro, fw)
         sub = Advantages(adv.action[:, cols], adv.message[:, cols], adv.returns[:, cols])
         if cfg.clip > 0:
             pg = clipped_policy_loss(
@@ -193,12 +209,7 @@ class Learner:
         self._clipped_step(self.opt_policy, list(policy.parameters()), [loss, *grounding])
 
         # critic: regress on Q_t for every query it answers
-        state, returns = ro.state[it, bc], adv.returns[it, bc]
-        values = [self.critic_values(state, moves, received, *self._action_queries())]
-        if not self.single_recipient:
-            values.append(self.critic_values(state, moves, received, *self._message_queries()))
-        v = torch.cat(values, 1)
-        v_loss = F.mse_loss(v, returns[:, None].expand_as(v))
+        v_loss = self.critic_loss(ro, fw.it, cols[fw.ib], adv.returns)
         self._clipped_step(self.opt_critic, list(self.critic.parameters()), [v_loss])
         out["losses/value"] = v_loss.item()
         return out
