@@ -65,6 +65,7 @@ def test_cli_small_sizes(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     table = (out / "scaling.md").read_text()
     assert table.count("| 4x4 |") == 2 and table.count("| 6x6 |") == 2
     assert (out / "scaling.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "scaling.svg").read_text().startswith("<?xml")
     assert not (out / "runs").exists()  # --episodes 0: no training
 
     assert main([*argv[:-2], "--sizes", "3", "--out", str(tmp_path / "j"), "--json"]) == 0
@@ -86,6 +87,7 @@ def test_learning_curves_at_a_fixed_budget(tmp_path: Path, capsys: pytest.Captur
         assert printed[name]["final_episode_length"] == pytest.approx(float(last["charts/episode_length_rolling"]))
     assert "not trained" not in (out / "scaling.md").read_text()
     assert (out / "scaling_curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "scaling_curves.svg").read_text().startswith("<?xml")
 
 
 def test_no_training_where_one_hot_would_not_fit(tmp_path: Path) -> None:

@@ -75,6 +75,7 @@ def test_train_writes_run_folder(run_dir: Path) -> None:
     assert {"agent_steps", "charts/episode_length", "charts/episode_length_rolling", "losses/policy"} <= set(r[0])
     assert any((run_dir / "tb").iterdir())
     assert (run_dir / "learning_curve.png").stat().st_size > 0
+    assert (run_dir / "learning_curve.svg").read_text().startswith("<?xml")
     latest = json.loads((run_dir / "checkpoints" / "latest.json").read_text())
     assert latest["episodes"] == 48 and (run_dir / "checkpoints" / latest["checkpoint"]).is_file()
     assert (run_dir / "checkpoints" / latest["state"]).is_file()

@@ -135,6 +135,7 @@ def test_cli_writes_csv_markdown_png_and_json(run_dir: Path, tmp_path: Path, cap
     table = (out / "variance.md").read_text().splitlines()
     assert sum(line.startswith("| 16 |") or line.startswith("| 32 |") for line in table) == 6
     assert (out / "variance.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "variance.svg").read_text().startswith("<?xml")
     assert "wrote" in capsys.readouterr().out
 
     # one stage, measured on the task with a longer message delay, as JSON

@@ -36,6 +36,7 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import bad_value
 from bitcomm.heads import MESSAGE_HEADS
 from bitcomm.networks import CriticNet, PolicyNet
+from bitcomm.plotting import save_figure
 from bitcomm.rollout import Collector, Rollout
 from bitcomm.train.config import TrainConfig, make_train_config
 from bitcomm.train.learner import Learner
@@ -304,7 +305,7 @@ PANELS = (
 
 
 def plot_scaling(rows: list[ScalingRow], path: str | Path) -> Path:
-    """Each measure against K, log y, a line per head."""
+    """Each measure against K, log y, a line per head; written as `path` (PNG) and beside it as SVG."""
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     fig = Figure(figsize=(3.4 * len(PANELS) + 0.4, 3.4), layout="constrained")
@@ -320,15 +321,13 @@ def plot_scaling(rows: list[ScalingRow], path: str | Path) -> Path:
     sizes = sorted({(r.bits, r.size) for r in rows})
     axes[0].legend(fontsize=8)
     fig.suptitle("grid sides " + ", ".join(f"{s} (K={k})" for k, s in sizes), fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    return path
+    return save_figure(fig, path)[0]
 
 
 def plot_curves(out: Path, rows: list[ScalingRow]) -> Path | None:
-    """Learning curves of the training runs (from their metrics.csv), a panel per grid size."""
-    from matplotlib.figure import Figure
+    """Learning curves of the training runs (from their metrics.csv), a panel per grid size, as
+    scaling_curves.png and .svg; None when nothing was trained."""
+    from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     trained = [r for r in rows if r.episodes > 0]
     if not trained:
@@ -346,6 +345,4 @@ def plot_curves(out: Path, rows: list[ScalingRow]) -> Path | None:
         ax.set_xlabel("episodes")
         ax.set_ylabel("mean episode length")
         ax.legend(fontsize=8)
-    path = out / "scaling_curves.png"
-    fig.savefig(path, dpi=100)
-    return path
+    return save_figure(fig, out / "scaling_curves.png")[0]

@@ -37,6 +37,7 @@ from bitcomm.config import TaskConfig
 from bitcomm.errors import ConfigError, bad_value
 from bitcomm.estimators import ESTIMATORS, Advantages, EstimatorBatch, discounted_returns, policy_gradient_loss
 from bitcomm.networks import PolicyNet
+from bitcomm.plotting import save_figure
 from bitcomm.rollout import Collector, Rollout
 from bitcomm.train.config import TrainConfig
 from bitcomm.train.learner import Learner
@@ -359,7 +360,8 @@ def markdown_table(rows: list[VarianceRow], title: str = "") -> str:
 
 
 def plot_variance(rows: list[VarianceRow], path: str | Path, title: str = "") -> Path:
-    """Variance of each estimator against episodes trained, one panel per part (message, action), log y."""
+    """Variance of each estimator against episodes trained, one panel per part (message, action), log y;
+    written as `path` (PNG) and beside it as SVG."""
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     parts = ("message", "action")
@@ -379,7 +381,4 @@ def plot_variance(rows: list[VarianceRow], path: str | Path, title: str = "") ->
     axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    return path
+    return save_figure(fig, path)[0]

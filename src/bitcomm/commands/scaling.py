@@ -21,7 +21,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="For each grid side S (K = ceil(log2(S^2)) bits) and each message head: message outputs (K vs "
         "2^K), parameters of the policy and both critics, parameter bytes, peak memory of one learner update "
         "(torch profiler, CPU) and its time on a fixed small batch; optionally a training run per pair "
-        "(--episodes). Writes scaling.csv, scaling.md and scaling.png.",
+        "(--episodes). Writes scaling.csv, scaling.md and scaling.png/.svg.",
     )
     p.add_argument("--sizes", default="10,16,32,64", help="grid sides (default %(default)s)")
     p.add_argument(
@@ -45,7 +45,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="train only pairs whose estimated training update fits (default %(default)s)",
     )
     p.add_argument("--seed", type=int, default=0, help="(default %(default)s)")
-    p.add_argument("--out", default="scaling", help="folder for scaling.csv/.md/.png (default %(default)s)")
+    p.add_argument("--out", default="scaling", help="folder for scaling.csv/.md/.png/.svg (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
     p.set_defaults(run=run)
 

@@ -51,7 +51,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "default %(default)s)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of critics, episodes and sampling (default %(default)s)")
-    p.add_argument("--out", default="variance", help="folder for variance.csv/.md/.png (default %(default)s)")
+    p.add_argument("--out", default="variance", help="folder for variance.csv/.md/.png/.svg (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
     add_task_flags(p)
     mark_task_defaults(p)

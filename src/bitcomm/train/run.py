@@ -3,7 +3,7 @@
     <out>/config.json          TrainConfig + seed, library versions, git commit, command line
     <out>/metrics.csv          one row per batch (flat namespaced keys), the source of every plot
     <out>/tb/                  the same rows for TensorBoard
-    <out>/learning_curve.png   mean episode length against episodes, from metrics.csv
+    <out>/learning_curve.png   mean episode length against episodes, from metrics.csv (and .svg)
     <out>/checkpoints/         see bitcomm.checkpoint
 
 `sync` mode: batch k plays `num_envs` whole episodes seeded by `SeedSequence(seed, spawn_key=(k,))`
@@ -31,6 +31,7 @@ import torch
 
 from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_state, load_weights, resolve, save_checkpoint
 from bitcomm.errors import ConfigError
+from bitcomm.plotting import save_figure
 from bitcomm.train.config import TrainConfig
 
 ROLLING = 1000
@@ -126,16 +127,14 @@ class Logger:
 
 
 def plot_learning_curve(out: Path) -> Path:
-    """learning_curve.png from metrics.csv (and the oracle's level from config.json)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """learning_curve.png and .svg from metrics.csv (and the oracle's level from config.json); returns the PNG."""
+    from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     with (out / "metrics.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
     config = json.loads((out / "config.json").read_text())
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig = Figure(figsize=(7, 4))
+    ax = fig.subplots()
     if rows:
         x = np.array([float(r["episodes"]) for r in rows])
         batch = [float(r["charts/episode_length"]) for r in rows]
@@ -150,12 +149,7 @@ def plot_learning_curve(out: Path) -> Path:
     ax.set_title(f"{config.get('estimator')} + {messages} ({config.get('recipe')}), seed {config.get('seed')}")
     ax.legend(loc="upper right")
     fig.tight_layout()
-    path = out / "learning_curve.png"
-    tmp = out / ".learning_curve.tmp.png"
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_figure(fig, out / "learning_curve.png")[0]
 
 
 # ---------------------------------------------------------------------------------------------- state
