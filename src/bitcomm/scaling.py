@@ -38,6 +38,7 @@ from bitcomm.heads import MESSAGE_HEADS
 from bitcomm.networks import CriticNet, PolicyNet
 from bitcomm.plotting import save_figure
 from bitcomm.rollout import Collector, Rollout
+from bitcomm.tables import write_rows_csv
 from bitcomm.train.config import TrainConfig, make_train_config
 from bitcomm.train.learner import Learner
 
@@ -255,13 +256,7 @@ def run_scaling(scfg: ScalingConfig, out: Path | None = None, progress: bool = F
 
 # ---------------------------------------------------------------------------------------------- report
 def write_csv(rows: list[ScalingRow], path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-        writer.writeheader()
-        writer.writerows(r.to_dict() for r in rows)
-    return path
+    return write_rows_csv((r.to_dict() for r in rows), CSV_FIELDS, path)
 
 
 def _mib(n: float) -> str:

@@ -9,7 +9,6 @@ panel per parameter.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +21,7 @@ from bitcomm.errors import bad_value
 from bitcomm.evaluation import EvalResult, evaluate
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policy_source import PolicySource
+from bitcomm.tables import write_rows_csv
 
 # parameter -> (config part, type); what a robot meets that the paper's simulator lacks, plus message delay
 SWEEPABLE: dict[str, tuple[str, type]] = {
@@ -103,13 +103,7 @@ def run_sweep(
 
 
 def write_csv(points: list[SweepPoint], path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-        writer.writeheader()
-        writer.writerows(p.row() for p in points)
-    return path
+    return write_rows_csv((p.row() for p in points), CSV_FIELDS, path)
 
 
 def plot_sweep(points: list[SweepPoint], path: str | Path, title: str = "") -> Path:

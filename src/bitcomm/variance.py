@@ -22,7 +22,6 @@ is measured is what training uses.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -39,6 +38,7 @@ from bitcomm.estimators import ESTIMATORS, Advantages, EstimatorBatch, discounte
 from bitcomm.networks import PolicyNet
 from bitcomm.plotting import save_figure
 from bitcomm.rollout import Collector, Rollout
+from bitcomm.tables import write_rows_csv
 from bitcomm.train.config import TrainConfig
 from bitcomm.train.learner import Learner
 
@@ -330,13 +330,7 @@ def measure_stage(stage: Stage, vcfg: VarianceConfig) -> list[VarianceRow]:
 
 # ---------------------------------------------------------------------------------------------- report
 def write_csv(rows: list[VarianceRow], path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-        writer.writeheader()
-        writer.writerows(r.to_dict() for r in rows)
-    return path
+    return write_rows_csv((r.to_dict() for r in rows), CSV_FIELDS, path)
 
 
 def markdown_table(rows: list[VarianceRow], title: str = "") -> str:
