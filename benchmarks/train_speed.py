@@ -32,9 +32,7 @@ def measure(mode: str, recipe: str, batches: int, warmup: int, workers: int) -> 
     if num_envs == 1:  # one-episode batches are short: time more of them
         batches, warmup = batches * 10, warmup * 5
     episodes = (batches + warmup) * w * num_envs
-    cfg = make_train_config(
-        recipe, TaskConfig(), mode=mode, workers=workers, episodes=episodes, checkpoint_seconds=1e9
-    )
+    cfg = make_train_config(recipe, TaskConfig(), mode=mode, workers=workers, episodes=episodes, checkpoint_seconds=1e9)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         train(cfg, Path(tmp) / "run", progress=False)

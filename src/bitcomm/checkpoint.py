@@ -60,9 +60,7 @@ def save_checkpoint(
     folder.mkdir(parents=True, exist_ok=True)
     stem = f"ckpt_{episodes:09d}"
     tensors = {
-        f"{prefix}.{k}": v.detach().contiguous().clone()
-        for prefix, sd in weights.items()
-        for k, v in sd.items()
+        f"{prefix}.{k}": v.detach().contiguous().clone() for prefix, sd in weights.items() for k, v in sd.items()
     }
     meta = {
         "format": FORMAT,

@@ -34,6 +34,11 @@ class BitwiseHead:
     def log_prob(self, logits: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
         return -F.binary_cross_entropy_with_logits(logits, bits.float(), reduction="none").sum(-1)
 
+    def log_prob_all(self, logits: torch.Tensor) -> torch.Tensor:
+        """`(N, K)` logits -> `(N, 2^K)` log-probability of every message (by index)."""
+        codes = index_to_bits(torch.arange(1 << self.bits), self.bits).float()  # (2^K, K)
+        return F.logsigmoid(logits) @ codes.T + F.logsigmoid(-logits) @ (1 - codes).T
+
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         p = torch.sigmoid(logits)
         return F.binary_cross_entropy_with_logits(logits, p, reduction="none").sum(-1)
@@ -74,6 +79,10 @@ class OneHotHead:
 
     def log_prob(self, logits: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
         return torch.log_softmax(logits, -1).gather(-1, bits_to_index(bits)[..., None])[..., 0]
+
+    def log_prob_all(self, logits: torch.Tensor) -> torch.Tensor:
+        """`(N, 2^K)` logits -> `(N, 2^K)` log-probability of every message (by index)."""
+        return torch.log_softmax(logits, -1)
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         logp = torch.log_softmax(logits, -1)

@@ -35,6 +35,17 @@ class ModelConfig:
     coords: bool = False
     """Add row and column coordinate planes to the observation (CoordConv), so that comparing a
     decoded goal with one's own position is a linear read-out rather than a lookup."""
+    plane_coords: bool = False
+    """Also give the fully connected layers each input plane's centre of mass (its row and column in
+    [-1, 1]): the exact cell of a one-hot plane, the expected cell of a decoded message map. Moving
+    toward a goal is then comparing two numbers, which convolutions of stride 2 learn only slowly
+    on larger grids."""
+    message_map: bool = False
+    """Also decode each received message into a map over the grid's cells (one linear layer; its most
+    likely cell as a one-hot plane, with the softmax's gradient) stacked beside the observation planes:
+    a message that names a cell then reaches the network the way a seen cell does, so moving toward it
+    is the same skill as moving toward anything the agent sees. The goal loss (`goal_coef`) trains the
+    decoder."""
 
 
 def _conv_stack(in_channels: int, channels: tuple[int, ...], size: int) -> tuple[nn.Sequential, int]:
@@ -62,12 +73,23 @@ class PolicyNet(nn.Module):
         self.head: MessageHead = make_head(cfg.messages, task.channel.bits)
         size = task.env.size
         self.register_buffer("coords", _coord_planes(size), persistent=False)
-        self.conv, flat = _conv_stack(2 + 2 * cfg.coords, cfg.conv_channels, size)
+        maps = task.slots if cfg.message_map else 0
+        self.conv, flat = _conv_stack(2 + 2 * cfg.coords + maps, cfg.conv_channels, size)
+        flat += 2 * (2 + maps) if cfg.plane_coords else 0
+        self.message_map = nn.Linear(self.head.in_features, size * size) if cfg.message_map else None
+        if self.message_map is not None:  # a uniform map until the decoder learns (TrainConfig.map_lr)
+            nn.init.zeros_(self.message_map.weight)
+            nn.init.zeros_(self.message_map.bias)
         self.message_in = nn.Sequential(nn.Linear(task.slots * self.head.in_features, cfg.message_hidden), nn.ReLU())
         self.fc1 = nn.Sequential(nn.Linear(flat + cfg.message_hidden, cfg.hidden), nn.ReLU())
         self.fc2 = nn.Sequential(nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU())
         self.move_logits = nn.Linear(cfg.hidden, N_MOVES)
         self.message_logits = nn.Linear(cfg.hidden, self.head.out_features)
+        # moves start uniform whatever the hidden layers say (as CleanRL's actor head, std 0.01), so a
+        # warm start that shapes the hidden layers does not leave the agents a strong random habit
+        with torch.no_grad():
+            self.move_logits.weight.mul_(0.01)
+            self.move_logits.bias.zero_()
         # training-time read-out of the agent's own goal (row and column) from its first hidden layer;
         # used only by the optional goal-grounding loss, never by acting
         self.goal_logits = nn.Linear(cfg.hidden, 2 * size)
@@ -75,12 +97,28 @@ class PolicyNet(nn.Module):
         # optional sender-grounding loss
         self.seen_logits = nn.Linear(cfg.hidden, 2 * size)
 
-    def observation_features(self, planes: torch.Tensor) -> torch.Tensor:
-        """`(N, 2, S, S)` planes (any dtype) -> `(N, flat)` features."""
+    def observation_features(self, planes: torch.Tensor, received_encoded: torch.Tensor) -> torch.Tensor:
+        """`(N, 2, S, S)` planes (any dtype) -> `(N, flat)` features; the received message enters here
+        only with `message_map`."""
+        S = self.task.env.size
         x = planes.float()
-        if self.cfg.coords:
-            x = torch.cat([x, self.coords.expand(x.shape[0], -1, -1, -1)], 1)
-        return self.conv(x)
+        if self.message_map is not None:
+            soft = torch.softmax(self.map_logits(received_encoded), -1)
+            hard = nn.functional.one_hot(soft.argmax(-1), S * S).to(soft.dtype)
+            maps = (hard + soft - soft.detach()).view(planes.shape[0], -1, S, S)  # the decoded cell, one-hot
+            x = torch.cat([x, maps], 1)
+        conv_in = torch.cat([x, self.coords.expand(x.shape[0], -1, -1, -1)], 1) if self.cfg.coords else x
+        features = self.conv(conv_in)
+        if not self.cfg.plane_coords:
+            return features
+        mass = x.sum((2, 3)).clamp(min=1e-6)  # (N, planes)
+        centre = torch.einsum("npij,cij->npc", x, self.coords) / mass[..., None]  # (N, planes, 2)
+        return torch.cat([features, centre.flatten(1)], 1)
+
+    def map_logits(self, received_encoded: torch.Tensor) -> torch.Tensor:
+        """`(N, slots * in_features)` -> `(N, slots, S * S)`: each received message as logits over cells."""
+        assert self.message_map is not None, "needs ModelConfig.message_map"
+        return self.message_map(received_encoded.view(received_encoded.shape[0], self.task.slots, -1))
 
     def encode_received(self, received: torch.Tensor) -> torch.Tensor:
         """`(N, slots, K)` bits -> `(N, slots * in_features)` as this head's receiver reads them."""
@@ -93,7 +131,8 @@ class PolicyNet(nn.Module):
 
     def forward(self, planes: torch.Tensor, received: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Move logits `(N, 5)` and message logits `(N, out)` for `(N, 2, S, S)` planes and `(N, slots, K)` bits."""
-        _, h2 = self.trunk(self.observation_features(planes), self.encode_received(received))
+        encoded = self.encode_received(received)
+        _, h2 = self.trunk(self.observation_features(planes, encoded), encoded)
         return self.move_logits(h2), self.message_logits(h2)
 
 

@@ -100,9 +100,7 @@ def _bit_string(bits: np.ndarray) -> str:
 def _agent_line(record: EpisodeRecord, t: int, i: int) -> str:
     """What agent i chose, sent and received at step t (0-based)."""
     slots = record.task.slot_senders[i]
-    heard = [
-        f"{_bit_string(record.received[t, i, k])}<-A{j}" for k, j in enumerate(slots) if j >= 0
-    ] or ["-"]
+    heard = [f"{_bit_string(record.received[t, i, k])}<-A{j}" for k, j in enumerate(slots) if j >= 0] or ["-"]
     sent = record.sent[t, i]
     return (
         f"A{i}  move {MOVE_NAMES[int(record.moves[t, i])]}  |  sent {_bit_string(sent)} (={int(bits_to_index(sent))})"

@@ -16,9 +16,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     from bitcomm.policy_source import mark_task_defaults
 
     p = sub.add_parser("eval", help="evaluate a trained policy (run folder or checkpoint file)")
-    p.add_argument(
-        "run_path", metavar="RUN_OR_CHECKPOINT", help="run folder or .safetensors file"
-    )
+    p.add_argument("run_path", metavar="RUN_OR_CHECKPOINT", help="run folder or .safetensors file")
     p.add_argument("--episodes", type=int, default=2000, help="evaluation episodes (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the episode set and of sampling (default %(default)s)")
     p.add_argument("--greedy", action="store_true", help="most likely move and message instead of sampling")

@@ -30,6 +30,7 @@ import torch.multiprocessing as mp
 from torch import nn
 
 from bitcomm.checkpoint import save_checkpoint
+from bitcomm.train.codebook import CodeBook
 from bitcomm.train.config import TrainConfig
 from bitcomm.train.run import (
     Logger,
@@ -38,14 +39,16 @@ from bitcomm.train.run import (
     checkpoint_weights,
     oracle_level,
     plot_learning_curve,
+    restore_learner,
     write_config,
 )
 
 
 def share_adam_state(opt: torch.optim.Optimizer) -> list[dict[str, torch.Tensor]]:
-    """Create (if empty) Adam's per-parameter state and move it to shared memory; in parameter order."""
+    """Create (if empty) Adam's per-parameter state and move it to shared memory; in the order of the
+    optimizer's groups and their parameters."""
     out = []
-    for p in opt.param_groups[0]["params"]:
+    for p in (p for g in opt.param_groups for p in g["params"]):
         st = opt.state[p]
         if not st:
             st["step"] = torch.zeros((), dtype=torch.float32)
@@ -63,11 +66,20 @@ class SharedStep:
     shared parameters with the shared Adam, then copies the shared weights back into the local net."""
 
     def __init__(
-        self, local: nn.Module, shared: nn.Module, states: list[dict[str, torch.Tensor]], lr: float, lock: Any
+        self,
+        local: nn.Module,
+        shared: nn.Module,
+        states: list[dict[str, torch.Tensor]],
+        template: torch.optim.Optimizer,
+        lock: Any,
     ) -> None:
         self.local, self.shared, self.lock = list(local.parameters()), list(shared.parameters()), lock
-        self.opt = torch.optim.Adam(self.shared, lr=lr)
-        for p, st in zip(self.shared, states, strict=True):
+        index = {id(p): k for k, p in enumerate(self.local)}
+        groups = [  # the local optimizer's groups (and their learning rates), over the shared parameters
+            {**g, "params": [self.shared[index[id(p)]] for p in g["params"]]} for g in template.param_groups
+        ]
+        self.opt = torch.optim.Adam(groups)
+        for p, st in zip((p for g in groups for p in g["params"]), states, strict=True):
             self.opt.state[p] = st
 
     def step(self) -> None:
@@ -91,7 +103,7 @@ def pull(local: Sequence[torch.Tensor], shared: Sequence[torch.Tensor]) -> None:
 def _worker(
     w: int,
     cfg: TrainConfig,
-    shared: tuple[nn.Module, nn.Module],
+    shared: tuple[nn.Module, nn.Module, CodeBook | None],
     states: tuple[list[dict[str, torch.Tensor]], list[dict[str, torch.Tensor]]],
     lock: Any,
     claimed: Any,
@@ -107,8 +119,9 @@ def _worker(
         torch.manual_seed(int(worker_seed[0]))
         generator = torch.Generator().manual_seed(int(worker_seed[1]))
         learner = Learner(cfg)
-        learner.opt_policy = SharedStep(learner.policy, shared[0], states[0], cfg.lr, lock)  # type: ignore[assignment]
-        learner.opt_critic = SharedStep(learner.critic, shared[1], states[1], cfg.critic_lr, lock)  # type: ignore[assignment]
+        learner.codebook = shared[2]
+        learner.opt_policy = SharedStep(learner.policy, shared[0], states[0], learner.opt_policy, lock)  # type: ignore[assignment]
+        learner.opt_critic = SharedStep(learner.critic, shared[1], states[1], learner.opt_critic, lock)  # type: ignore[assignment]
         local = list(learner.policy.parameters()) + list(learner.critic.parameters())
         remote = list(shared[0].parameters()) + list(shared[1].parameters())
         collector = Collector(cfg.task, cfg.num_envs)
@@ -144,10 +157,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     prog = Progress()
     start_batch = 0
     if saved is not None:
-        learner.policy.load_state_dict(saved["weights"]["policy"])
-        learner.critic.load_state_dict(saved["weights"]["critic"])
-        learner.opt_policy.load_state_dict(saved["opt_policy"])
-        learner.opt_critic.load_state_dict(saved["opt_critic"])
+        restore_learner(learner, saved)
         prog.restore(saved)
         start_batch = int(saved.get("next_batch", prog.batches))
         previous = json.loads((out / "config.json").read_text())
@@ -160,13 +170,15 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
 
     learner.policy.share_memory()
     learner.critic.share_memory()
+    if learner.codebook is not None:  # one book for every worker, or they would teach different codes
+        learner.codebook.share_memory()
     states = (share_adam_state(learner.opt_policy), share_adam_state(learner.opt_critic))
     ctx = mp.get_context("spawn")
     lock = ctx.Lock()
     claimed = ctx.Value("q", prog.episodes, lock=False)
     next_batch = ctx.Value("q", start_batch, lock=False)
     results = ctx.Queue()
-    shared = (learner.policy, learner.critic)
+    shared = (learner.policy, learner.critic, learner.codebook)
     procs = [
         ctx.Process(target=_worker, args=(w, cfg, shared, states, lock, claimed, next_batch, results), daemon=True)
         for w in range(cfg.workers)

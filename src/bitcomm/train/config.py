@@ -65,6 +65,14 @@ class TrainConfig:
     """How the goal-grounding loss reaches the sender: > 0, through a relaxed channel, the receiver
     reading sigmoid(sender logit + channel_noise * N(0, 1)) (DIAL); 0, straight through the sampled
     bits. Acting and the channel itself stay discrete either way."""
+    code_coef: float = 0.0
+    """Weight of a loss that trains each sender toward a code word of the goal it observes (its own
+    observation, so not privileged), the words matched to goals one to one by the sender's own running
+    preference (bitcomm.train.codebook): a code with no two goals on one message, which a relaxed
+    channel does not find (one goal per message where 2^bits >= size * size)."""
+    map_lr: float = 0.01
+    """Adam learning rate of the message-map decoder (ModelConfig.message_map), which starts at zero
+    (a uniform map); a decoder is a small linear read-out that the policy's rate would fit slowly."""
     checkpoint_seconds: float = 60.0
     """Write a checkpoint at most this often (and at the end)."""
 
@@ -82,12 +90,12 @@ class TrainConfig:
                 raise bad_value(name.replace("_", "-"), getattr(self, name), "must be an integer >= 1")
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
-        for name in ("lr", "critic_lr", "max_grad_norm"):
+        for name in ("lr", "critic_lr", "map_lr", "max_grad_norm"):
             if not float(getattr(self, name)) > 0:
                 raise bad_value(name.replace("_", "-"), getattr(self, name), "must be > 0")
         if not 0.0 < self.gamma <= 1.0:
             raise bad_value("gamma", self.gamma, "must be in (0, 1]")
-        for name in ("entropy_move", "entropy_message", "clip", "goal_coef", "seen_coef", "channel_noise"):
+        for name in ("entropy_move", "entropy_message", "clip", "goal_coef", "seen_coef", "code_coef", "channel_noise"):
             if float(getattr(self, name)) < 0:
                 raise bad_value(name.replace("_", "-"), getattr(self, name), "must be >= 0")
 
@@ -112,26 +120,34 @@ RECIPES: dict[str, dict[str, Any]] = {
         mode="a3c",
         num_envs=1,
         lr=1e-3,
+        gamma=0.95,
         epochs=1,
         minibatches=1,
         clip=0.0,
         adv_norm=False,
         goal_coef=0.0,
         seen_coef=0.0,
+        code_coef=0.0,
         coords=False,
+        plane_coords=False,
+        message_map=False,
     ),
     "fast": dict(
         mode="sync",
         num_envs=64,
         lr=1e-3,
+        gamma=0.5,
         epochs=4,
         minibatches=4,
         clip=0.2,
         adv_norm=True,
         goal_coef=1.0,
         seen_coef=1.0,
+        code_coef=1.0,
         channel_noise=1.0,
         coords=True,
+        plane_coords=True,
+        message_map=True,
     ),
 }
 """Each recipe's values for the learning options; any flag given explicitly overrides them."""

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from bitcomm.estimators import Advantages, EstimatorBatch, get_estimator, policy_gradient_loss
 from bitcomm.networks import CriticNet, PolicyNet
 from bitcomm.rollout import Rollout
+from bitcomm.train.codebook import CodeBook
 from bitcomm.train.config import TrainConfig
 
 
@@ -45,6 +46,7 @@ class _Forward(NamedTuple):
     it: torch.Tensor
     ib: torch.Tensor
     received: torch.Tensor  # (M, n, slots, K)
+    encoded: torch.Tensor  # (M * n, slots * in_features): the received messages as the policy reads them
     feats: torch.Tensor  # (M * n, flat)
     h1: torch.Tensor
     msg_logits: torch.Tensor
@@ -60,7 +62,10 @@ class Learner:
         self.n = task.env.n_agents
         self.policy = PolicyNet(task, cfg.model)
         self.critic = CriticNet(task, cfg.model, with_message=cfg.estimator == "standard")
-        self.opt_policy = torch.optim.Adam(self.policy.parameters(), lr=cfg.lr)
+        decoder = list(self.policy.message_map.parameters()) if self.policy.message_map is not None else []
+        rest = [p for p in self.policy.parameters() if all(p is not d for d in decoder)]
+        groups = [{"params": rest}] + ([{"params": decoder, "lr": cfg.map_lr}] if decoder else [])
+        self.opt_policy = torch.optim.Adam(groups, lr=cfg.lr)
         self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
         self.estimator = get_estimator(cfg.estimator)
         rec = task.recipient_matrix
@@ -69,6 +74,8 @@ class Learner:
         self.not_recipient = torch.from_numpy(~rec)  # (n, n): [j, k] agent k's action may be given for j's message
         self.slot_senders = torch.from_numpy(task.slot_senders)
         self.observed = torch.tensor(task.env.observed)
+        self.slot_goal = self.observed[self.slot_senders.clamp(min=0)]  # (n, slots): whose goal each slot names
+        self.codebook = CodeBook(task.env.size**2, self.policy.head) if cfg.code_coef > 0 else None
 
     # ---------------------------------------------------------------- critic
     def critic_values(
@@ -144,9 +151,10 @@ class Learner:
         valid = ro.valid[:, cols]
         it, ib = valid.nonzero(as_tuple=True)
         received = ro.received[it, cols[ib]]  # (M, n, slots, K)
-        feats = policy.observation_features(ro.planes[it, cols[ib]].flatten(0, 1))
-        h1, h2 = policy.trunk(feats, policy.encode_received(received.flatten(0, 1)))
-        return _Forward(cols, it, ib, received, feats, h1, policy.message_logits(h2), policy.move_logits(h2))
+        encoded = policy.encode_received(received.flatten(0, 1))
+        feats = policy.observation_features(ro.planes[it, cols[ib]].flatten(0, 1), encoded)
+        h1, h2 = policy.trunk(feats, encoded)
+        return _Forward(cols, it, ib, received, encoded, feats, h1, policy.message_logits(h2), policy.move_logits(h2))
 
     def log_probs(self, ro: Rollout, fw: _Forward | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Differentiable `(T, Bc, n)` log pi(a_t) and log Pm(m_t) of the moves and messages the rollout
@@ -170,7 +178,17 @@ class Learner:
         cfg, policy, S = self.cfg, self.policy, self.cfg.task.env.size
         goal = ro.goal[fw.cols[fw.ib]]  # (M, n)
         losses, out = [], {}
-        if cfg.goal_coef > 0:  # privileged: the receiver names its own goal from what it heard
+        if cfg.goal_coef > 0 and policy.message_map is not None:
+            # privileged: each slot's map names the goal its sender observes (the receiver's own, in a
+            # ring), read from the bits that arrived; the sender's code comes from `code_coef`
+            _, present = self._sources(ro, fw.cols, fw.it, fw.ib)
+            label = goal[:, self.slot_goal].flatten()
+            ce = F.cross_entropy(policy.map_logits(fw.encoded).flatten(0, 1), label, reduction="none")
+            mask = present.flatten().float()
+            goal_loss = (ce * mask).sum() / mask.sum().clamp(min=1)
+            losses.append(cfg.goal_coef * goal_loss)
+            out["losses/goal"] = goal_loss.item()
+        elif cfg.goal_coef > 0:  # privileged: the receiver names its own goal from what it heard
             h1_heard, _ = policy.trunk(fw.feats, self._heard(ro, fw.cols, fw.it, fw.ib, fw.received, fw.msg_logits))
             goal_loss = _cell_loss(policy.goal_logits(h1_heard), goal.flatten(), S)
             losses.append(cfg.goal_coef * goal_loss)
@@ -179,6 +197,12 @@ class Learner:
             seen_loss = _cell_loss(policy.seen_logits(fw.h1), goal[:, self.observed].flatten(), S)
             losses.append(cfg.seen_coef * seen_loss)
             out["losses/seen"] = seen_loss.item()
+        if self.codebook is not None:  # the sender says its goal's code word
+            seen_goal = goal[:, self.observed].flatten()
+            words = self.codebook.targets(seen_goal, fw.msg_logits)
+            code_loss = -policy.head.log_prob(fw.msg_logits, words).mean()
+            losses.append(cfg.code_coef * code_loss)
+            out["losses/code"] = code_loss.item()
         return losses, out
 
     def _step(self, ro: Rollout, adv: Advantages, cols: torch.Tensor) -> dict[str, float]:
@@ -233,6 +257,18 @@ class Learner:
             p.grad = g
         opt.step()
 
+    def _sources(
+        self, ro: Rollout, cols: torch.Tensor, it: torch.Tensor, ib: torch.Tensor
+    ) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
+        """For each received slot `(M, n, slots)`: the index of the step, episode and sender that sent it
+        (into arrays over columns `cols`), and whether a message arrived there (sent, in time, not dropped)."""
+        d = self.cfg.task.channel.delay
+        ts = (it - d).clamp(min=0)[:, None, None]
+        snd = self.slot_senders.clamp(min=0)[None]  # (1, n, slots)
+        src = ts, ib[:, None, None], snd
+        use = (it >= d)[:, None, None] & (self.slot_senders >= 0)[None] & ~ro.dropped[:, cols][src]
+        return src, use
+
     def _heard(
         self,
         ro: Rollout,
@@ -244,14 +280,11 @@ class Learner:
     ) -> torch.Tensor:
         """Receivers' inputs as a differentiable function of senders' logits (see TrainConfig.channel_noise)."""
         T, Bc = ro.valid.shape[0], cols.shape[0]
-        n, head, d = self.n, self.policy.head, self.cfg.task.channel.delay
+        n, head = self.n, self.policy.head
         logits = torch.zeros(T, Bc, n, msg_logits.shape[-1])
         logits[it, ib] = msg_logits.view(it.shape[0], n, -1)
-        ts = (it - d).clamp(min=0)[:, None, None]
-        snd = self.slot_senders.clamp(min=0)[None]  # (1, n, slots)
-        src = ts, ib[:, None, None], snd
+        src, use = self._sources(ro, cols, it, ib)
         sent_bits = ro.bits[:, cols][src]  # (M, n, slots, K)
-        use = (it >= d)[:, None, None] & (self.slot_senders >= 0)[None] & ~ro.dropped[:, cols][src]
         flips = received ^ sent_bits
         noise = self.cfg.channel_noise
         if noise > 0:

@@ -178,7 +178,18 @@ class Progress:
 
 
 def checkpoint_weights(learner: Any) -> dict[str, dict[str, torch.Tensor]]:
-    return {"policy": learner.policy.state_dict(), "critic": learner.critic.state_dict()}
+    weights = {"policy": learner.policy.state_dict(), "critic": learner.critic.state_dict()}
+    if learner.codebook is not None:
+        weights["codebook"] = learner.codebook.state_dict()
+    return weights
+
+
+def restore_learner(learner: Any, saved: dict[str, Any]) -> None:
+    """Weights, code book and optimizer moments of a checkpoint's state into a fresh Learner."""
+    for name, sd in saved["weights"].items():
+        getattr(learner, name).load_state_dict(sd)
+    learner.opt_policy.load_state_dict(saved["opt_policy"])
+    learner.opt_critic.load_state_dict(saved["opt_critic"])
 
 
 def resume_config(out: Path, episodes: int | None = None) -> TrainConfig:
@@ -232,10 +243,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
     collector = Collector(cfg.task, cfg.num_envs)
     prog = Progress()
     if saved is not None:
-        learner.policy.load_state_dict(saved["weights"]["policy"])
-        learner.critic.load_state_dict(saved["weights"]["critic"])
-        learner.opt_policy.load_state_dict(saved["opt_policy"])
-        learner.opt_critic.load_state_dict(saved["opt_critic"])
+        restore_learner(learner, saved)
         generator.set_state(saved["generator"])
         torch.set_rng_state(saved["torch_rng"])  # anything drawing from the global generator continues too
         prog.restore(saved)
