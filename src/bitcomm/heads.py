@@ -34,10 +34,19 @@ class BitwiseHead:
     def log_prob(self, logits: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
         return -F.binary_cross_entropy_with_logits(logits, bits.float(), reduction="none").sum(-1)
 
+    def log_prob_terms(self, logits: torch.Tensor) -> torch.Tensor:
+        """`(N, K)` logits -> `(N, 2K)` log P(bit = 1) and log P(bit = 0): every message's log-probability
+        is linear in them, so their mean over samples gives every message's mean log-probability."""
+        return torch.cat([F.logsigmoid(logits), F.logsigmoid(-logits)], -1)
+
+    def log_prob_of_terms(self, terms: torch.Tensor) -> torch.Tensor:
+        """`(N, 2K)` terms (or their means) -> `(N, 2^K)` log-probability of every message (by index)."""
+        codes = index_to_bits(torch.arange(1 << self.bits), self.bits).float()  # (2^K, K)
+        return terms[:, : self.bits] @ codes.T + terms[:, self.bits :] @ (1 - codes).T
+
     def log_prob_all(self, logits: torch.Tensor) -> torch.Tensor:
         """`(N, K)` logits -> `(N, 2^K)` log-probability of every message (by index)."""
-        codes = index_to_bits(torch.arange(1 << self.bits), self.bits).float()  # (2^K, K)
-        return F.logsigmoid(logits) @ codes.T + F.logsigmoid(-logits) @ (1 - codes).T
+        return self.log_prob_of_terms(self.log_prob_terms(logits))
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         p = torch.sigmoid(logits)
@@ -80,9 +89,16 @@ class OneHotHead:
     def log_prob(self, logits: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
         return torch.log_softmax(logits, -1).gather(-1, bits_to_index(bits)[..., None])[..., 0]
 
+    def log_prob_terms(self, logits: torch.Tensor) -> torch.Tensor:
+        """`(N, 2^K)` logits -> the log-probability of every message, which is its own linear term."""
+        return torch.log_softmax(logits, -1)
+
+    def log_prob_of_terms(self, terms: torch.Tensor) -> torch.Tensor:
+        return terms
+
     def log_prob_all(self, logits: torch.Tensor) -> torch.Tensor:
         """`(N, 2^K)` logits -> `(N, 2^K)` log-probability of every message (by index)."""
-        return torch.log_softmax(logits, -1)
+        return self.log_prob_terms(logits)
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         logp = torch.log_softmax(logits, -1)

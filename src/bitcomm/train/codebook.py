@@ -1,13 +1,13 @@
 """Self-labelled message codes (option `TrainConfig.code_coef`): which message tells which goal.
 
 A sender is trained toward one code word per goal it observes. The words are not fixed in advance:
-every update matches the goals seen so far to messages by the sender's own running preference (its
-mean message logits for that goal), one goal per message, most confident goal first, so the sender
-keeps what it already says and two goals never share a word. That matching is what a relaxed channel
-never found (two goals sharing a code stay stuck together; docs/tuning.md), in the spirit of
-self-labelling with an equipartition constraint (Asano et al. 2020). It uses only the goal the sender
-observes, never privileged state. With fewer messages than cells (2^bits < size^2) goals share
-messages as evenly as the matching allows.
+every update matches the goals seen so far to messages by the sender's own running preference (each
+message's mean log-probability when the sender last saw that goal), one goal per message, most
+confident goal first, so the sender keeps what it already says and two goals never share a word.
+That matching is what a relaxed channel never found (two goals sharing a code stay stuck together;
+docs/tuning.md), in the spirit of self-labelling with an equipartition constraint (Asano et al.
+2020). It uses only the goal the sender observes, never privileged state. With fewer messages than
+cells (2^bits < size^2) goals share messages as evenly as the matching allows.
 
 The book is a module of buffers so that checkpoints carry it and A3C workers can share it in memory.
 """
@@ -44,7 +44,8 @@ class CodeBook(nn.Module):
     def __init__(self, n_goals: int, head: MessageHead) -> None:
         super().__init__()
         self.head = head
-        self.register_buffer("preference", torch.zeros(n_goals, head.out_features))
+        terms = head.log_prob_terms(torch.zeros(1, head.out_features)).shape[1]
+        self.register_buffer("preference", torch.zeros(n_goals, terms))
         self.register_buffer("seen", torch.zeros(n_goals, dtype=torch.bool))
 
     @torch.no_grad()
@@ -52,10 +53,10 @@ class CodeBook(nn.Module):
         """`goals (N,)` observed by senders whose message logits are `(N, out)` -> `(N, K)` target bits."""
         present, inverse = torch.unique(goals, return_inverse=True)
         counts = torch.bincount(inverse, minlength=len(present)).to(logits.dtype)[:, None]
-        mean = torch.zeros(len(present), logits.shape[1]).index_add_(0, inverse, logits.detach()) / counts
-        self.preference[present] = mean
+        terms = self.head.log_prob_terms(logits.detach())
+        self.preference[present] = torch.zeros(len(present), terms.shape[1]).index_add_(0, inverse, terms) / counts
         self.seen[present] = True
         known = self.seen.nonzero()[:, 0]
         word = torch.full_like(goals.new_empty(self.seen.shape[0]), -1)
-        word[known] = greedy_matching(self.head.log_prob_all(self.preference[known]))
+        word[known] = greedy_matching(self.head.log_prob_of_terms(self.preference[known]))
         return index_to_bits(word[goals], self.head.bits)
