@@ -57,6 +57,6 @@ class CodeBook(nn.Module):
         self.preference[present] = torch.zeros(len(present), terms.shape[1]).index_add_(0, inverse, terms) / counts
         self.seen[present] = True
         known = self.seen.nonzero()[:, 0]
-        word = torch.full_like(goals.new_empty(self.seen.shape[0]), -1)
+        word = torch.full((self.seen.shape[0],), -1, dtype=torch.long)
         word[known] = greedy_matching(self.head.log_prob_of_terms(self.preference[known]))
         return index_to_bits(word[goals], self.head.bits)

@@ -174,31 +174,32 @@ class Learner:
         return full(logp_move), full(logp_msg)
 
     def _grounding_losses(self, ro: Rollout, fw: _Forward) -> tuple[list[torch.Tensor], dict[str, float]]:
-        """The optional grounding losses (`goal_coef`, `seen_coef`), weighted, with their values for the log."""
+        """The optional grounding losses (`goal_coef`, `seen_coef`, `code_coef`), weighted, with their values
+        for the log."""
         cfg, policy, S = self.cfg, self.policy, self.cfg.task.env.size
         goal = ro.goal[fw.cols[fw.ib]]  # (M, n)
+        seen_goal = goal[:, self.observed].flatten()  # the goal each sender observes
         losses, out = [], {}
-        if cfg.goal_coef > 0 and policy.message_map is not None:
-            # privileged: each slot's map names the goal its sender observes (the receiver's own, in a
-            # ring), read from the bits that arrived; the sender's code comes from `code_coef`
-            _, present = self._sources(ro, fw.cols, fw.it, fw.ib)
-            label = goal[:, self.slot_goal].flatten()
-            ce = F.cross_entropy(policy.map_logits(fw.encoded).flatten(0, 1), label, reduction="none")
-            mask = present.flatten().float()
-            goal_loss = (ce * mask).sum() / mask.sum().clamp(min=1)
-            losses.append(cfg.goal_coef * goal_loss)
-            out["losses/goal"] = goal_loss.item()
-        elif cfg.goal_coef > 0:  # privileged: the receiver names its own goal from what it heard
-            h1_heard, _ = policy.trunk(fw.feats, self._heard(ro, fw.cols, fw.it, fw.ib, fw.received, fw.msg_logits))
-            goal_loss = _cell_loss(policy.goal_logits(h1_heard), goal.flatten(), S)
+        if cfg.goal_coef > 0:
+            if policy.message_map is not None:
+                # privileged: each slot's map names the goal its sender observes (the receiver's own, in a
+                # ring), read from the bits that arrived; the sender's code comes from `code_coef`
+                _, present = self._sources(ro, fw.cols, fw.it, fw.ib)
+                label = goal[:, self.slot_goal].flatten()
+                ce = F.cross_entropy(policy.map_logits(fw.encoded).flatten(0, 1), label, reduction="none")
+                mask = present.flatten().float()
+                goal_loss = (ce * mask).sum() / mask.sum().clamp(min=1)
+            else:  # privileged: the receiver names its own goal from what it heard
+                heard = self._heard(ro, fw.cols, fw.it, fw.ib, fw.received, fw.msg_logits)
+                h1_heard, _ = policy.trunk(fw.feats, heard)
+                goal_loss = _cell_loss(policy.goal_logits(h1_heard), goal.flatten(), S)
             losses.append(cfg.goal_coef * goal_loss)
             out["losses/goal"] = goal_loss.item()
         if cfg.seen_coef > 0:  # the sender names the goal it observes
-            seen_loss = _cell_loss(policy.seen_logits(fw.h1), goal[:, self.observed].flatten(), S)
+            seen_loss = _cell_loss(policy.seen_logits(fw.h1), seen_goal, S)
             losses.append(cfg.seen_coef * seen_loss)
             out["losses/seen"] = seen_loss.item()
         if self.codebook is not None:  # the sender says its goal's code word
-            seen_goal = goal[:, self.observed].flatten()
             words = self.codebook.targets(seen_goal, fw.msg_logits)
             code_loss = -policy.head.log_prob(fw.msg_logits, words).mean()
             losses.append(cfg.code_coef * code_loss)
