@@ -2,9 +2,10 @@
 
 Trains a named recipe (improved + bitwise unless told otherwise) on a task for S seeds and prints,
 per seed, the environment episodes and training wall seconds until the mean episode length of
-sampled play falls below 2x and below 1.15x the oracle. A rung counts when the rolling mean over
-the last 1,000 training episodes is below it AND `bitcomm eval` on 2,000 fixed episodes (sampled,
-seed 12345) confirms it. Training runs in chunks of `--chunk` episodes, each one resuming the run's
+sampled play falls below 2x and below 1.15x the oracle, and then until greedy play falls below 1.05x
+(the ladder's third rung). A sampled rung counts when the rolling mean over the last 1,000 training
+episodes is below it AND `bitcomm eval` on 2,000 fixed episodes (sampled, seed 12345) confirms it;
+the greedy rung is checked with `bitcomm eval --greedy` after every chunk once 1.15x is reached. Training runs in chunks of `--chunk` episodes, each one resuming the run's
 checkpoint, so the check happens between chunks; evaluation time is not counted as training time.
 Seeds run `--jobs` at a time, each in its own process with `--threads` torch threads.
 The last line printed is one JSON object.
@@ -27,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 RUNGS = (("2x", 2.0), ("1.15x", 1.15))
+GREEDY_RUNG = ("greedy 1.05x", 1.05)
 EVAL_SEED = 12345
 
 
@@ -68,7 +70,7 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
         **overrides,
     )
     oracle = None
-    reached: dict[str, dict[str, float] | None] = {name: None for name, _ in RUNGS}
+    reached: dict[str, dict[str, float] | None] = {name: None for name, _ in (*RUNGS, GREEDY_RUNG)}
     checks: list[dict[str, float]] = []
     episodes, wall, resume = 0, 0.0, False
     while wall < args["minutes"] * 60 and episodes < args["max_episodes"]:
@@ -88,7 +90,11 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
                 if sampled < k * oracle:
                     reached[name] = {"episodes": episodes, "wall_s": round(wall, 1), "eval": round(sampled, 3)}
         if reached[RUNGS[-1][0]] is not None:
-            break
+            greedy = evaluate_checkpoint(run, args["eval_episodes"], EVAL_SEED, greedy=True).mean_episode_length
+            checks.append({"episodes": episodes, "rolling": rolling, "greedy_eval": greedy})
+            if greedy < GREEDY_RUNG[1] * oracle:
+                reached[GREEDY_RUNG[0]] = {"episodes": episodes, "wall_s": round(wall, 1), "eval": round(greedy, 3)}
+                break
     final = {
         kind: evaluate_checkpoint(run, args["eval_episodes"], EVAL_SEED, greedy=kind == "greedy").mean_episode_length
         for kind in ("sampled", "greedy")

@@ -97,3 +97,37 @@ def test_rollout_holds_whole_first_episodes():
     last = torch.from_numpy(ro.length - 1)
     assert ro.done[last, torch.arange(16)].all()
     assert np.allclose(ro.rewards.masked_fill(~ro.valid, 0).sum(0).numpy(), ro.team_return, atol=1e-4)
+
+
+def test_training_episodes_are_truncated_at_train_max_steps_but_the_task_is_not():
+    cfg = make_train_config("fast", TINY, num_envs=16, train_max_steps=3)
+    assert cfg.training_task.env.max_steps == 3 and cfg.task.env.max_steps == 20
+    ro = Collector(cfg.training_task, 16).collect(PolicyNet(TINY, cfg.model), np.random.SeedSequence(1), torch.Generator())
+    assert ro.length.max() <= 3 and ro.planes.shape[0] <= 3
+    assert make_train_config("fast", TINY, train_max_steps=0).training_task == TINY
+
+
+def test_uniform_move_pulls_a_move_the_policy_gave_up_back():
+    """The entropy bonus cannot revive a move of probability ~0; KL(uniform || pi) can."""
+
+    def stay_probability_after_one_update(uniform_move: float) -> tuple[float, float]:
+        torch.manual_seed(0)
+        cfg = make_train_config("fast", TINY, num_envs=8, uniform_move=uniform_move, lr=1e-2)
+        learner = Learner(cfg)
+        with torch.no_grad():
+            learner.policy.move_logits.bias[0] = -12.0  # "stay" all but dead
+        ro = Collector(TINY, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+        planes, received = ro.planes[ro.valid].flatten(0, 1).float(), ro.received[ro.valid].flatten(0, 1)
+
+        def p_stay() -> float:
+            with torch.no_grad():
+                return torch.softmax(learner.policy(planes, received)[0], -1)[:, 0].mean().item()
+
+        before = p_stay()
+        learner.update(ro, torch.Generator().manual_seed(0))
+        return before, p_stay()
+
+    before, with_pull = stay_probability_after_one_update(1.0)
+    _, entropy_only = stay_probability_after_one_update(0.0)
+    assert with_pull > 10 * before
+    assert with_pull > 10 * entropy_only

@@ -124,7 +124,7 @@ def _worker(
         learner.opt_critic = SharedStep(learner.critic, shared[1], states[1], learner.opt_critic, lock)  # type: ignore[assignment]
         local = list(learner.policy.parameters()) + list(learner.critic.parameters())
         remote = list(shared[0].parameters()) + list(shared[1].parameters())
-        collector = Collector(cfg.task, cfg.num_envs)
+        collector = Collector(cfg.training_task, cfg.num_envs)
         parent = mp.parent_process()
         while True:
             if parent is not None and not parent.is_alive():  # the main process was killed: stop, do not linger

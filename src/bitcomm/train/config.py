@@ -36,6 +36,10 @@ class TrainConfig:
     """Worker processes in `a3c` mode."""
     episodes: int = 100_000
     """Budget: environment episodes to play."""
+    train_max_steps: int = 0
+    """Truncate training episodes after this many steps (0: the task's `max_steps`). Evaluation
+    keeps the task's own limit. Early on every episode runs to the limit, so a short one buys more
+    updates per second; with a small gamma the returns it cuts short lose little."""
     seed: int = 0
     num_envs: int = 128
     """Episodes per batch (per worker in `a3c` mode)."""
@@ -44,6 +48,11 @@ class TrainConfig:
     gamma: float = 0.95
     entropy_move: float = 0.01
     entropy_message: float = 0.001
+    uniform_move: float = 0.0
+    """Weight of KL(uniform || move policy), a pull of (p - 1/5) on each move logit. The entropy
+    bonus's pull, -p (log p + H), vanishes with an action's probability, so an action the penalties
+    drive to zero early (staying, penalised off the goal) never comes back when it becomes the right
+    one (on the goal, while the partner walks); this pull keeps every move sampled now and then."""
     max_grad_norm: float = 1.0
     epochs: int = 1
     """Passes over each batch (PPO-style reuse when > 1)."""
@@ -85,6 +94,8 @@ class TrainConfig:
             raise bad_value("mode", self.mode, f"choose one of {', '.join(MODES)}")
         if self.recipe not in RECIPES:
             raise bad_value("recipe", self.recipe, f"choose one of {', '.join(RECIPES)}")
+        if int(self.train_max_steps) < 0:
+            raise bad_value("train-max-steps", self.train_max_steps, "must be >= 0 (0: the task's max_steps)")
         for name in ("workers", "episodes", "num_envs", "epochs", "minibatches"):
             if int(getattr(self, name)) < 1:
                 raise bad_value(name.replace("_", "-"), getattr(self, name), "must be an integer >= 1")
@@ -95,9 +106,17 @@ class TrainConfig:
                 raise bad_value(name.replace("_", "-"), getattr(self, name), "must be > 0")
         if not 0.0 < self.gamma <= 1.0:
             raise bad_value("gamma", self.gamma, "must be in (0, 1]")
-        for name in ("entropy_move", "entropy_message", "clip", "goal_coef", "seen_coef", "code_coef", "channel_noise"):
+        for name in ("entropy_move", "entropy_message", "uniform_move", "clip", "goal_coef", "seen_coef", "code_coef", "channel_noise"):
             if float(getattr(self, name)) < 0:
                 raise bad_value(name.replace("_", "-"), getattr(self, name), "must be >= 0")
+
+    @property
+    def training_task(self) -> TaskConfig:
+        """The task episodes are collected on: the task, truncated at `train_max_steps` if set."""
+        limit = self.train_max_steps
+        if limit == 0 or limit >= self.task.env.max_steps:
+            return self.task
+        return dataclasses.replace(self.task, env=dataclasses.replace(self.task.env, max_steps=limit))
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -119,6 +138,7 @@ RECIPES: dict[str, dict[str, Any]] = {
     "paper": dict(
         mode="a3c",
         num_envs=1,
+        train_max_steps=0,
         lr=1e-3,
         gamma=0.95,
         epochs=1,
@@ -128,6 +148,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         goal_coef=0.0,
         seen_coef=0.0,
         code_coef=0.0,
+        uniform_move=0.0,
         coords=False,
         plane_coords=False,
         message_map=False,
@@ -135,6 +156,7 @@ RECIPES: dict[str, dict[str, Any]] = {
     "fast": dict(
         mode="sync",
         num_envs=64,
+        train_max_steps=64,
         lr=1e-3,
         gamma=0.5,
         epochs=4,
@@ -145,6 +167,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         seen_coef=1.0,
         code_coef=1.0,
         channel_noise=1.0,
+        uniform_move=0.01,
         coords=True,
         plane_coords=True,
         message_map=True,

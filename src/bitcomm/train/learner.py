@@ -220,9 +220,12 @@ class Learner:
             )
         else:
             pg = policy_gradient_loss(logp_move, logp_msg, sub, valid)
-        ent_move = -(torch.softmax(move_logits, -1) * torch.log_softmax(move_logits, -1)).sum(-1).mean()
+        logp_moves = torch.log_softmax(move_logits, -1)
+        ent_move = -(logp_moves.exp() * logp_moves).sum(-1).mean()
         ent_msg = head.entropy(msg_logits).mean()
         loss = pg - n * (cfg.entropy_move * ent_move + cfg.entropy_message * ent_msg)
+        if cfg.uniform_move > 0:  # KL(uniform || pi) up to a constant
+            loss = loss - n * cfg.uniform_move * logp_moves.mean()
         grounding, out = self._grounding_losses(ro, fw)
         out.update(
             {

@@ -240,7 +240,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
     torch.manual_seed(cfg.seed)
     learner = Learner(cfg)
     generator = torch.Generator().manual_seed(cfg.seed)
-    collector = Collector(cfg.task, cfg.num_envs)
+    collector = Collector(cfg.training_task, cfg.num_envs)
     prog = Progress()
     if saved is not None:
         restore_learner(learner, saved)
