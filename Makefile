@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 TORCH := torch==2.13.0
 RUN ?= runs/default
-EPISODES ?= 20000
+EPISODES ?= 50000
 
 .PHONY: install train test lint bench clean
 
