@@ -5,13 +5,15 @@ per seed, the environment episodes and training wall seconds until the mean epis
 sampled play falls below 2x and below 1.15x the oracle, and then until greedy play falls below 1.05x
 (the ladder's third rung). A sampled rung counts when the rolling mean over the last 1,000 training
 episodes is below it AND `bitcomm eval` on 2,000 fixed episodes (sampled, seed 12345) confirms it;
-the greedy rung is checked with `bitcomm eval --greedy` after every chunk once 1.15x is reached. Training runs in chunks of `--chunk` episodes, each one resuming the run's
-checkpoint, so the check happens between chunks; evaluation time is not counted as training time.
+the greedy rung is checked with `bitcomm eval --greedy` after every chunk once 1.15x is reached.
+Training runs in chunks of `--chunk` episodes, each one resuming the run's checkpoint, so the
+checks happen between chunks; evaluation time is not counted as training time.
 Seeds run `--jobs` at a time, each in its own process with `--threads` torch threads.
 The last line printed is one JSON object.
 
     python benchmarks/solve.py --size 4 --bits 4 --minutes 5            # rung 1
     python benchmarks/solve.py --minutes 15                             # rung 2 (the paper's 10x10)
+    python benchmarks/solve.py --minutes 45                             # rung 3
     python benchmarks/solve.py --recipe paper --minutes 15              # the paper's own recipe
     python benchmarks/solve.py --set gamma=0.8 --set lr=3e-4            # any TrainConfig option
 """

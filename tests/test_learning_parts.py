@@ -102,7 +102,9 @@ def test_rollout_holds_whole_first_episodes():
 def test_training_episodes_are_truncated_at_train_max_steps_but_the_task_is_not():
     cfg = make_train_config("fast", TINY, num_envs=16, train_max_steps=3)
     assert cfg.training_task.env.max_steps == 3 and cfg.task.env.max_steps == 20
-    ro = Collector(cfg.training_task, 16).collect(PolicyNet(TINY, cfg.model), np.random.SeedSequence(1), torch.Generator())
+    ro = Collector(cfg.training_task, 16).collect(
+        PolicyNet(TINY, cfg.model), np.random.SeedSequence(1), torch.Generator()
+    )
     assert ro.length.max() <= 3 and ro.planes.shape[0] <= 3
     assert make_train_config("fast", TINY, train_max_steps=0).training_task == TINY
 

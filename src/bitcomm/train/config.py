@@ -106,7 +106,16 @@ class TrainConfig:
                 raise bad_value(name.replace("_", "-"), getattr(self, name), "must be > 0")
         if not 0.0 < self.gamma <= 1.0:
             raise bad_value("gamma", self.gamma, "must be in (0, 1]")
-        for name in ("entropy_move", "entropy_message", "uniform_move", "clip", "goal_coef", "seen_coef", "code_coef", "channel_noise"):
+        for name in (
+            "entropy_move",
+            "entropy_message",
+            "uniform_move",
+            "clip",
+            "goal_coef",
+            "seen_coef",
+            "code_coef",
+            "channel_noise",
+        ):
             if float(getattr(self, name)) < 0:
                 raise bad_value(name.replace("_", "-"), getattr(self, name), "must be >= 0")
 
