@@ -25,6 +25,7 @@ import csv
 import json
 import multiprocessing as mp
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -164,8 +165,9 @@ def main() -> None:
         flush=True,
     )
     results = []
-    with mp.get_context("spawn").Pool(min(a.jobs, a.seeds)) as pool:
-        for r in pool.imap(_solve_star, [(args, s) for s in seeds]):
+    # not a multiprocessing.Pool: its workers are daemonic and cannot start a3c's worker processes
+    with ProcessPoolExecutor(min(a.jobs, a.seeds), mp_context=mp.get_context("spawn")) as pool:
+        for r in pool.map(_solve_star, [(args, s) for s in seeds]):
             rungs = "  ".join(
                 f"{name}: " + (f"{v['episodes']} ep / {v['wall_s']} s" if v else "not reached")
                 for name, v in r["reached"].items()

@@ -248,6 +248,8 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
         return save()
     finally:
         for p in procs:
+            if p.pid is None:  # never started (start() itself failed)
+                continue
             if p.is_alive():
                 p.terminate()
             p.join(timeout=5)

@@ -144,7 +144,8 @@ def plot_learning_curve(out: Path) -> Path:
     if config.get("oracle_mean_episode_length") is not None:
         ax.axhline(config["oracle_mean_episode_length"], color="k", ls="--", lw=1, label="oracle")
     ax.set_xlabel("episodes")
-    ax.set_ylabel("mean episode length")
+    cut, limit = config.get("train_max_steps") or 0, config["task"]["env"]["max_steps"]
+    ax.set_ylabel("mean episode length" + (f" (training episodes cut at {cut})" if 0 < cut < limit else ""))
     messages = config.get("model", {}).get("messages")
     ax.set_title(f"{config.get('estimator')} + {messages} ({config.get('recipe')}), seed {config.get('seed')}")
     ax.legend(loc="upper right")
