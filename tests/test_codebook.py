@@ -26,11 +26,11 @@ def test_matching_shares_columns_evenly_when_rows_outnumber_them():
 
 
 @pytest.mark.parametrize("name", ["bitwise", "onehot"])
-def test_log_prob_all_agrees_with_log_prob_of_each_message(name):
+def test_log_prob_terms_give_the_log_prob_of_each_message(name):
     head = make_head(name, 3)
     logits = torch.randn(4, head.out_features)
     every = torch.stack([head.log_prob(logits, index_to_bits(torch.full((4,), m), 3)) for m in range(8)], -1)
-    assert torch.allclose(head.log_prob_all(logits), every, atol=1e-5)
+    assert torch.allclose(head.log_prob_of_terms(head.log_prob_terms(logits)), every, atol=1e-5)
 
 
 def test_code_words_are_distinct_and_follow_the_senders_preference():

@@ -44,10 +44,6 @@ class BitwiseHead:
         codes = index_to_bits(torch.arange(1 << self.bits), self.bits).float()  # (2^K, K)
         return terms[:, : self.bits] @ codes.T + terms[:, self.bits :] @ (1 - codes).T
 
-    def log_prob_all(self, logits: torch.Tensor) -> torch.Tensor:
-        """`(N, K)` logits -> `(N, 2^K)` log-probability of every message (by index)."""
-        return self.log_prob_of_terms(self.log_prob_terms(logits))
-
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         p = torch.sigmoid(logits)
         return F.binary_cross_entropy_with_logits(logits, p, reduction="none").sum(-1)
@@ -95,10 +91,6 @@ class OneHotHead:
 
     def log_prob_of_terms(self, terms: torch.Tensor) -> torch.Tensor:
         return terms
-
-    def log_prob_all(self, logits: torch.Tensor) -> torch.Tensor:
-        """`(N, 2^K)` logits -> `(N, 2^K)` log-probability of every message (by index)."""
-        return self.log_prob_terms(logits)
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         logp = torch.log_softmax(logits, -1)
