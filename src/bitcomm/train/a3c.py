@@ -44,11 +44,15 @@ from bitcomm.train.run import (
 )
 
 
+def _grouped_params(groups: list[dict[str, Any]]) -> list[torch.Tensor]:
+    """The parameters of optimizer groups, group by group: the order shared Adam states are listed in."""
+    return [p for g in groups for p in g["params"]]
+
+
 def share_adam_state(opt: torch.optim.Optimizer) -> list[dict[str, torch.Tensor]]:
-    """Create (if empty) Adam's per-parameter state and move it to shared memory; in the order of the
-    optimizer's groups and their parameters."""
+    """Create (if empty) Adam's per-parameter state and move it to shared memory; in `_grouped_params` order."""
     out = []
-    for p in (p for g in opt.param_groups for p in g["params"]):
+    for p in _grouped_params(opt.param_groups):
         st = opt.state[p]
         if not st:
             st["step"] = torch.zeros((), dtype=torch.float32)
@@ -79,7 +83,7 @@ class SharedStep:
             {**g, "params": [self.shared[index[id(p)]] for p in g["params"]]} for g in template.param_groups
         ]
         self.opt = torch.optim.Adam(groups)
-        for p, st in zip((p for g in groups for p in g["params"]), states, strict=True):
+        for p, st in zip(_grouped_params(groups), states, strict=True):
             self.opt.state[p] = st
 
     def step(self) -> None:
