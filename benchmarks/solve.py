@@ -75,7 +75,16 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
     oracle = None
     reached: dict[str, dict[str, float] | None] = {name: None for name, _ in (*RUNGS, GREEDY_RUNG)}
     checks: list[dict[str, float]] = []
-    episodes, wall, resume = 0, 0.0, False
+    episodes, wall, rolling, resume = 0, 0.0, float("nan"), False
+    evaluated: dict[tuple[int, bool], float] = {}
+
+    def play(greedy: bool) -> float:
+        """Mean episode length of the latest checkpoint on the fixed episodes, evaluated once per checkpoint."""
+        if (episodes, greedy) not in evaluated:
+            result = evaluate_checkpoint(run, args["eval_episodes"], EVAL_SEED, greedy=greedy)
+            evaluated[episodes, greedy] = result.mean_episode_length
+        return evaluated[episodes, greedy]
+
     while wall < args["minutes"] * 60 and episodes < args["max_episodes"]:
         target = episodes + args["chunk"]
         train(_with_budget(cfg, target), run, resume=resume, progress=False)
@@ -87,21 +96,18 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
             oracle = json.loads((run / "config.json").read_text())["oracle_mean_episode_length"]
         pending = [(name, k) for name, k in RUNGS if reached[name] is None]
         if pending and episodes >= 1000 and rolling < pending[0][1] * oracle:
-            sampled = evaluate_checkpoint(run, args["eval_episodes"], EVAL_SEED).mean_episode_length
+            sampled = play(greedy=False)
             checks.append({"episodes": episodes, "rolling": rolling, "eval": sampled})
             for name, k in pending:
                 if sampled < k * oracle:
                     reached[name] = {"episodes": episodes, "wall_s": round(wall, 1), "eval": round(sampled, 3)}
         if reached[RUNGS[-1][0]] is not None:
-            greedy = evaluate_checkpoint(run, args["eval_episodes"], EVAL_SEED, greedy=True).mean_episode_length
+            greedy = play(greedy=True)
             checks.append({"episodes": episodes, "rolling": rolling, "greedy_eval": greedy})
             if greedy < GREEDY_RUNG[1] * oracle:
                 reached[GREEDY_RUNG[0]] = {"episodes": episodes, "wall_s": round(wall, 1), "eval": round(greedy, 3)}
                 break
-    final = {
-        kind: evaluate_checkpoint(run, args["eval_episodes"], EVAL_SEED, greedy=kind == "greedy").mean_episode_length
-        for kind in ("sampled", "greedy")
-    }
+    final = {"sampled": play(greedy=False), "greedy": play(greedy=True)}
     return {
         "seed": seed,
         "oracle": oracle,
@@ -109,7 +115,7 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
         "wall_s": round(wall, 1),
         "reached": reached,
         "final_eval": {k: round(v, 3) for k, v in final.items()},
-        "final_rolling": round(float(_last_row(run)["charts/episode_length_rolling"]), 3),
+        "final_rolling": round(rolling, 3),
         "checks": checks,
         "run": str(run),
     }
