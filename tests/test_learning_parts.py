@@ -133,3 +133,26 @@ def test_uniform_move_pulls_a_move_the_policy_gave_up_back():
     _, entropy_only = stay_probability_after_one_update(0.0)
     assert with_pull > 10 * before
     assert with_pull > 10 * entropy_only
+
+
+def test_reused_clip_factors_make_the_same_step_in_one_backward_pass():
+    """Each loss is clipped on its own; a later step of the batch reuses the factors in one backward."""
+    torch.manual_seed(0)
+    learner = Learner(make_train_config("fast", TINY, num_envs=8))
+    params = list(learner.policy.parameters())
+    planes = torch.randint(0, 2, (6, 2, 4, 4))
+    received = torch.randint(0, 2, (6, TINY.slots, 3), dtype=torch.uint8)
+
+    def losses() -> list[torch.Tensor]:
+        move, message = learner.policy(planes, received)
+        return [move.logsumexp(-1).mean(), 100.0 * message.square().mean()]  # the second one is clipped
+
+    def grads_after(scales: list[float] | None) -> tuple[list[torch.Tensor], list[float]]:
+        used = learner._clipped_step(torch.optim.SGD(params, lr=0.0), params, losses(), scales)
+        return [p.grad.clone() if p.grad is not None else torch.zeros_like(p) for p in params], used
+
+    measured, factors = grads_after(None)
+    assert factors[0] == 1.0 and 0.0 < factors[1] < 1.0
+    reused, same = grads_after(factors)
+    assert same == factors
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(measured, reused, strict=True))

@@ -138,10 +138,12 @@ class Learner:
             adv = adv._replace(action=_scaled(adv.action, ro.valid), message=_scaled(adv.message, ro.valid))
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
+        clip_scales: list[float] | None = None  # measured on the update's first step, then reused
         for _ in range(cfg.epochs):
             order = torch.randperm(B, generator=generator) if cfg.minibatches > 1 else torch.arange(B)
             for cols in order.chunk(cfg.minibatches):
-                for k, v in self._step(ro, adv, cols).items():
+                step_stats, clip_scales = self._step(ro, adv, cols, clip_scales)
+                for k, v in step_stats.items():
                     stats.setdefault(k, []).append(v)
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
@@ -206,8 +208,11 @@ class Learner:
             out["losses/code"] = code_loss.item()
         return losses, out
 
-    def _step(self, ro: Rollout, adv: Advantages, cols: torch.Tensor) -> dict[str, float]:
-        """One gradient step of policy and critic on the whole episodes in columns `cols`."""
+    def _step(
+        self, ro: Rollout, adv: Advantages, cols: torch.Tensor, clip_scales: list[float] | None
+    ) -> tuple[dict[str, float], list[float]]:
+        """One gradient step of policy and critic on the whole episodes in columns `cols`; returns the
+        figures for the log and the policy losses' clip factors (see `_clipped_step`)."""
         cfg, policy, head, n = self.cfg, self.policy, self.policy.head, self.n
         fw = self._forward(ro, cols)
         valid = ro.valid[:, cols]
@@ -234,32 +239,45 @@ class Learner:
                 "charts/entropy_message": ent_msg.item(),
             }
         )
-        self._clipped_step(self.opt_policy, list(policy.parameters()), [loss, *grounding])
+        clip_scales = self._clipped_step(self.opt_policy, list(policy.parameters()), [loss, *grounding], clip_scales)
 
         # critic: regress on Q_t for every query it answers
         v_loss = self.critic_loss(ro, fw.it, cols[fw.ib], adv.returns)
-        self._clipped_step(self.opt_critic, list(self.critic.parameters()), [v_loss])
+        self._clipped_step(self.opt_critic, list(self.critic.parameters()), [v_loss], None)
         out["losses/value"] = v_loss.item()
-        return out
+        return out, clip_scales
 
     def _clipped_step(
-        self, opt: torch.optim.Optimizer, params: list[torch.nn.Parameter], losses: list[torch.Tensor]
-    ) -> None:
+        self,
+        opt: torch.optim.Optimizer,
+        params: list[torch.nn.Parameter],
+        losses: list[torch.Tensor],
+        scales: list[float] | None,
+    ) -> list[float]:
         """Clip each loss's gradient to `max_grad_norm` on its own, then step on their sum, so an
-        auxiliary loss is neither drowned by the policy gradient nor drowns it."""
-        total: list[torch.Tensor | None] = [None] * len(params)
-        for k, loss in enumerate(losses):
-            grads = torch.autograd.grad(loss, params, retain_graph=k < len(losses) - 1, allow_unused=True)
-            present = [g for g in grads if g is not None]
-            norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in present]))
-            scale = min(1.0, self.cfg.max_grad_norm / (float(norm) + 1e-6))
-            total = [
-                t if g is None else (g * scale if t is None else t + g * scale)
-                for t, g in zip(total, grads, strict=True)
-            ]
+        auxiliary loss is neither drowned by the policy gradient nor drowns it (one global clip does:
+        docs/tuning.md). Measuring the factors takes a backward pass per loss; given `scales` (the
+        factors an earlier step of the same batch measured), one backward pass of the weighted sum
+        makes the same step at the cost of one. Returns the factors used."""
+        if scales is None or len(losses) == 1:
+            total: list[torch.Tensor | None] = [None] * len(params)
+            scales = []
+            for k, loss in enumerate(losses):
+                grads = torch.autograd.grad(loss, params, retain_graph=k < len(losses) - 1, allow_unused=True)
+                present = [g for g in grads if g is not None]
+                norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in present]))
+                scales.append(min(1.0, self.cfg.max_grad_norm / (float(norm) + 1e-6)))
+                total = [
+                    t if g is None else (g * scales[k] if t is None else t + g * scales[k])
+                    for t, g in zip(total, grads, strict=True)
+                ]
+        else:
+            weighted = torch.stack([loss * scale for loss, scale in zip(losses, scales, strict=True)]).sum()
+            total = list(torch.autograd.grad(weighted, params, allow_unused=True))
         for p, g in zip(params, total, strict=True):
             p.grad = g
         opt.step()
+        return scales
 
     def _sources(
         self, ro: Rollout, cols: torch.Tensor, it: torch.Tensor, ib: torch.Tensor
