@@ -15,7 +15,7 @@ from pathlib import Path
 
 from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
-from bitcomm.compare import CHOICES, CompareConfig, parse_techniques, parse_vary, run_compare
+from bitcomm.compare import CHOICES, STUDY_EPISODES, CompareConfig, parse_techniques, parse_vary, run_compare
 from bitcomm.errors import bad_value
 
 
@@ -36,7 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--recipe", choices=("paper", "fast"), default="fast", help="learning options (default %(default)s)")
     p.add_argument("--seeds", type=int, default=5, help="seeds 0..S-1 per configuration (default %(default)s)")
-    p.add_argument("--episodes", type=int, default=None, help="budget of every run (default: bitcomm train's)")
+    p.add_argument("--episodes", type=int, default=STUDY_EPISODES, help="budget of every run (default %(default)s)")
     p.add_argument("--jobs", type=int, default=None, help="processes at once (default: the core count)")
     p.add_argument("--out", type=Path, default=Path("runs/compare"), help="study folder (default %(default)s)")
     p.add_argument("--eval-episodes", type=int, default=1000, help="evaluation episodes per run (default %(default)s)")
