@@ -76,6 +76,29 @@ def test_policy_and_critics_shapes():
         assert v.shape == (6,)
 
 
+@pytest.mark.parametrize("size", [4, 5])
+def test_decoded_maps_enter_the_first_convolution_as_a_matrix_product_with_the_same_values_and_gradients(size):
+    task = TaskConfig(EnvConfig(size=size, n_agents=3), ChannelConfig(bits=4, recipients=((1, 2), (0,), (0,))))
+    net = PolicyNet(task, ModelConfig(coords=True, message_map=True))
+    torch.manual_seed(0)
+    seen = torch.randn(6, 4, size, size)  # observed planes, then the coordinate planes
+    maps = torch.softmax(torch.randn(6, task.slots, size * size), -1).requires_grad_()
+    weights = torch.randn(6, 8, (size + 1) // 2, (size + 1) // 2)
+    conv = net.conv[0]
+    planes = torch.cat([seen[:, :2], maps.view(6, task.slots, size, size), seen[:, 2:]], 1)
+
+    def result(out):
+        return out.detach(), torch.autograd.grad((out * weights).sum(), [maps, conv.weight, conv.bias])
+
+    want_out, want_grads = result(conv(planes))
+    got_out, got_grads = result(net._first_conv(seen, maps))
+    torch.testing.assert_close(got_out, want_out, rtol=1e-5, atol=1e-5)
+    for got, want in zip(got_grads, want_grads, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    with torch.no_grad():  # acting: the plain convolution
+        torch.testing.assert_close(net._first_conv(seen, maps), want_out, rtol=1e-5, atol=1e-5)
+
+
 @pytest.mark.parametrize("recipe", ["paper", "fast"])
 @pytest.mark.parametrize("estimator", ["standard", "improved"])
 def test_one_update_runs_and_changes_the_policy(recipe, estimator):

@@ -66,16 +66,17 @@ def write_graph(controller: Controller, path: Path) -> None:
         warnings.filterwarnings("ignore", message=".*TorchScript-based ONNX export", category=DeprecationWarning)
         warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\.onnx\._internal\.torchscript")
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
-        torch.onnx.export(
-            controller.policy.eval(),
-            example,
-            str(path),
-            **legacy,
-            opset_version=OPSET,
-            input_names=list(INPUTS),
-            output_names=list(OUTPUTS),
-            dynamic_axes={name: {0: "N"} for name in INPUTS + OUTPUTS},
-        )
+        with torch.no_grad():  # the acting graph (PolicyNet._first_conv takes a training-only path otherwise)
+            torch.onnx.export(
+                controller.policy.eval(),
+                example,
+                str(path),
+                **legacy,
+                opset_version=OPSET,
+                input_names=list(INPUTS),
+                output_names=list(OUTPUTS),
+                dynamic_axes={name: {0: "N"} for name in INPUTS + OUTPUTS},
+            )
 
 
 def export_onnx(controller: Controller, path: str | Path) -> dict[str, Any]:
