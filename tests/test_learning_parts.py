@@ -112,6 +112,18 @@ def test_one_update_runs_and_changes_the_policy(recipe, estimator):
     assert any(not torch.equal(a, b) for a, b in zip(before, learner.policy.parameters(), strict=True))
 
 
+@pytest.mark.parametrize("anneal", [True, False])
+def test_anneal_lr_scales_every_learning_rate_by_the_budget_left(anneal):
+    cfg = make_train_config("fast", TINY, num_envs=4, mode="sync", anneal_lr=anneal)
+    learner, collector = Learner(cfg), Collector(TINY, 4)
+    rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    base = [cfg.lr, cfg.map_lr, cfg.critic_lr]  # policy, message-map decoder, critic
+    for progress in (0.25, 1.0):
+        learner.update(rollout, torch.Generator().manual_seed(0), progress=progress)
+        lrs = [g["lr"] for opt in (learner.opt_policy, learner.opt_critic) for g in opt.param_groups]
+        assert lrs == pytest.approx([b * (1 - progress) if anneal else b for b in base])
+
+
 def test_rollout_holds_whole_first_episodes():
     cfg = make_train_config("paper", TINY, num_envs=16, mode="sync")
     ro = Collector(TINY, 16).collect(PolicyNet(TINY, cfg.model), np.random.SeedSequence(1), torch.Generator())

@@ -192,9 +192,9 @@ def test_a3c_trains_shared_weights_and_resumes(tmp_path: Path) -> None:
 
     out = tmp_path / "a3c"
     args = ["train", *TINY, "--mode", "a3c", "--workers", "2", "--quiet", "--eval-episodes", "0", "--out", str(out)]
-    bitcomm(*args, "--episodes", "64")
+    bitcomm(*args, "--episodes", "64", "--anneal-lr")  # the schedule reaches the workers' shared optimizers
     assert [int(r["episodes"]) for r in rows(out)] == [16, 32, 48, 64]
-    cfg = tiny_config(mode="a3c", episodes=64)
+    cfg = tiny_config(mode="a3c", episodes=64, anneal_lr=True)
     torch.manual_seed(cfg.seed)
     init = Learner(cfg).policy.state_dict()
     trained = weights(out)

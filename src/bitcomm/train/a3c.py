@@ -86,6 +86,11 @@ class SharedStep:
         for p, st in zip(_grouped_params(groups), states, strict=True):
             self.opt.state[p] = st
 
+    @property
+    def param_groups(self) -> list[dict[str, Any]]:
+        """The shared Adam's groups, so the learner can set their learning rates (`anneal_lr`)."""
+        return self.opt.param_groups
+
     def step(self) -> None:
         for lp, sp in zip(self.local, self.shared, strict=True):
             sp.grad = lp.grad
@@ -137,13 +142,14 @@ def _worker(
             with lock:
                 if claimed.value >= cfg.episodes:
                     break
+                claimed_before = claimed.value
                 claimed.value += cfg.num_envs
                 k = next_batch.value
                 next_batch.value += 1
             # sync, rollout, update
             pull(local, remote)
             ro = collector.collect(learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(k,)), generator)
-            stats = learner.update(ro, generator)
+            stats = learner.update(ro, generator, progress=claimed_before / cfg.episodes)
             results.put(("batch", w, ro.length.copy(), ro.team_return.copy(), ro.success.copy(), stats))
         results.put(("done", w))
     except BaseException:  # report, so the main process stops with the worker's traceback

@@ -79,6 +79,10 @@ class TrainConfig:
     observation, so not privileged), the words matched to goals one to one by the sender's own running
     preference (bitcomm.train.codebook): a code with no two goals on one message, which a relaxed
     channel does not find (one goal per message where 2^bits >= size * size)."""
+    anneal_lr: bool = False
+    """Decay every learning rate linearly to zero over the budget (`episodes`), as CleanRL's PPO does:
+    the last updates are then too small to undo a converged policy (the late relapses of
+    docs/results.md). The schedule follows `episodes`, so resuming with a larger budget raises it again."""
     map_lr: float = 0.01
     """Adam learning rate of the message-map decoder (ModelConfig.message_map), which starts at zero
     (a uniform map); a decoder is a small linear read-out that the policy's rate would fit slowly."""

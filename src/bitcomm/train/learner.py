@@ -67,6 +67,7 @@ class Learner:
         groups = [{"params": rest}] + ([{"params": decoder, "lr": cfg.map_lr}] if decoder else [])
         self.opt_policy = torch.optim.Adam(groups, lr=cfg.lr)
         self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+        self.base_lrs = [[g["lr"] for g in opt.param_groups] for opt in (self.opt_policy, self.opt_critic)]
         self.estimator = get_estimator(cfg.estimator)
         rec = task.recipient_matrix
         self.single_recipient = bool((rec.sum(1) == 1).all())
@@ -128,8 +129,13 @@ class Learner:
         return F.mse_loss(v, returns[it, ib][:, None].expand_as(v))
 
     # ---------------------------------------------------------------- update
-    def update(self, ro: Rollout, generator: torch.Generator | None = None) -> dict[str, float]:
+    def update(self, ro: Rollout, generator: torch.Generator | None = None, progress: float = 0.0) -> dict[str, float]:
+        """One update on the batch `ro`; `progress` is the fraction of the budget played so far (`anneal_lr`)."""
         cfg = self.cfg
+        if cfg.anneal_lr:
+            for opt, bases in zip((self.opt_policy, self.opt_critic), self.base_lrs, strict=True):
+                for group, base in zip(opt.param_groups, bases, strict=True):
+                    group["lr"] = base * max(0.0, 1.0 - progress)
         it, ib = ro.valid.nonzero(as_tuple=True)
         b_action, b_message = self.baselines(ro, it, ib)
         batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)

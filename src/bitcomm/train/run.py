@@ -279,7 +279,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
             seed = np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,))
             ro = collector.collect(learner.policy, seed, generator)
             # update
-            stats = learner.update(ro, generator)
+            stats = learner.update(ro, generator, progress=prog.episodes / cfg.episodes)
             prog.wall_s += time.perf_counter() - t0
             prog.batches += 1
             prog.episodes += len(ro.length)
