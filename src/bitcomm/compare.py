@@ -65,11 +65,11 @@ CSV_POINTS = 1000
 """At most this many rows of each run's curve go to curves.csv (evenly spaced, always the last)."""
 EVALUATION = "evaluation.json"
 RESUMABLE = ("episodes", "checkpoint_seconds")
+"""Config fields a finished or partial run may differ in from the study and still count as its run."""
 STUDY_EPISODES = 40_000
 """The default budget of every run: on the default task, improved + bitwise under `fast` reaches 1.15x
 the oracle after about 30,000 episodes and greedy play within 1.05x after about 50,000 (docs/tuning.md),
 while the whole study (25 runs, two at a time) took 1 h 57 min on 2 cores (docs/results.md)."""
-"""Config fields a finished or partial run may differ in from the study and still count as its run."""
 
 
 def _task_options() -> dict[str, tuple[str, str, Option]]:
