@@ -82,10 +82,10 @@ def test_decoded_maps_enter_the_first_convolution_as_a_matrix_product_with_the_s
     net = PolicyNet(task, ModelConfig(coords=True, message_map=True))
     torch.manual_seed(0)
     seen = torch.randn(6, 4, size, size)  # observed planes, then the coordinate planes
-    maps = torch.softmax(torch.randn(6, task.slots, size * size), -1).requires_grad_()
+    maps = torch.softmax(torch.randn(6, task.slots, size * size), -1).view(6, task.slots, size, size).requires_grad_()
     weights = torch.randn(6, 8, (size + 1) // 2, (size + 1) // 2)
     conv = net.conv[0]
-    planes = torch.cat([seen[:, :2], maps.view(6, task.slots, size, size), seen[:, 2:]], 1)
+    planes = torch.cat([seen[:, :2], maps, seen[:, 2:]], 1)
 
     def result(out):
         return out.detach(), torch.autograd.grad((out * weights).sum(), [maps, conv.weight, conv.bias])

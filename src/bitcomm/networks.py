@@ -107,34 +107,39 @@ class PolicyNet(nn.Module):
         else:
             soft = torch.softmax(self.map_logits(received_encoded), -1)  # (N, slots, S * S)
             hard = nn.functional.one_hot(soft.argmax(-1), soft.shape[-1]).to(soft.dtype)
-            maps = hard + soft - soft.detach()  # the decoded cell, one-hot, with the softmax's gradient
+            maps = (hard + soft - soft.detach()).view(x.shape[0], -1, *x.shape[2:])  # the decoded cell, one-hot
             features = self.conv[1:](self._first_conv(seen, maps))
-            x = torch.cat([x, maps.view(x.shape[0], -1, *x.shape[2:])], 1)
         if not self.cfg.plane_coords:
             return features
+        if self.message_map is not None:
+            x = torch.cat([x, maps], 1)
         mass = x.sum((2, 3)).clamp(min=1e-6)  # (N, planes)
         centre = torch.einsum("npij,cij->npc", x, self.coords) / mass[..., None]  # (N, planes, 2)
         return torch.cat([features, centre.flatten(1)], 1)
 
     def _first_conv(self, seen: torch.Tensor, maps: torch.Tensor) -> torch.Tensor:
         """The first convolution over the input planes `[observed, maps, coords]`, with the decoded maps
-        `(N, slots, S * S)` applied as a matrix product: they are the only input that needs a gradient,
+        `(N, slots, S, S)` applied as a matrix product: they are the only input that needs a gradient,
         and a convolution's input gradient costs 10x its forward on these small planes on a CPU
         (docs/tuning.md, session 6), while over one plane it is a linear map from cells to outputs."""
         conv: nn.Conv2d = self.conv[0]  # type: ignore[assignment]
-        i, slots, cells = 2, maps.shape[1], maps.shape[2]
+        observed, slots = 2, maps.shape[1]
         if not maps.requires_grad:  # acting, evaluation, ONNX export: the plain convolution
-            return conv(torch.cat([seen[:, :i], maps.view(*maps.shape[:2], *seen.shape[2:]), seen[:, i:]], 1))
+            return conv(torch.cat([seen[:, :observed], maps, seen[:, observed:]], 1))
         w = conv.weight  # (out, in, 3, 3), input channels in the order above
         out = nn.functional.conv2d(
-            seen, torch.cat([w[:, :i], w[:, i + slots :]], 1), conv.bias, conv.stride, conv.padding
+            seen, torch.cat([w[:, :observed], w[:, observed + slots :]], 1), conv.bias, conv.stride, conv.padding
         )
-        size = seen.shape[-1]
-        basis = torch.eye(cells, dtype=w.dtype).view(cells, 1, size, size)
+        cells = maps.shape[2] * maps.shape[3]
+        basis = torch.eye(cells, dtype=w.dtype).view(cells, 1, *maps.shape[2:])
         per_cell = nn.functional.conv2d(  # (cells, slots * out, ...): each map channel's output for each cell
-            basis, w[:, i : i + slots].transpose(0, 1).reshape(-1, 1, *w.shape[2:]), None, conv.stride, conv.padding
+            basis,
+            w[:, observed : observed + slots].transpose(0, 1).reshape(-1, 1, *w.shape[2:]),
+            None,
+            conv.stride,
+            conv.padding,
         )
-        mapped = torch.einsum("nsc,csq->nq", maps, per_cell.view(cells, slots, -1))
+        mapped = torch.einsum("nsc,csq->nq", maps.flatten(2), per_cell.view(cells, slots, -1))
         return out + mapped.view_as(out)
 
     def map_logits(self, received_encoded: torch.Tensor) -> torch.Tensor:
