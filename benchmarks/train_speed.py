@@ -7,7 +7,15 @@ sync mode; in a3c mode each of the W workers uses 1. On a machine where another 
 busy, 2 threads can be many times slower than 1 (the threads wait on each other): compare both.
 The last line printed is one JSON object.
 
-    python benchmarks/train_speed.py [--modes sync,a3c] [--recipes paper,fast] [--batches 3]
+`passes` is how many forward and backward passes each agent-step goes through (the recipe's
+`epochs`): `fast` reuses each batch for 4 epochs of 4 minibatch steps. `--single-pass` also times
+each multi-pass recipe with `epochs=1, minibatches=1` (one gradient step per batch, the plain batched
+actor-critic), so the trainer's own cost and the recipe's reuse can be told apart in one run.
+`--num-envs N` sets every recipe's episodes per batch: `--recipes paper --num-envs 64` is the paper's
+network and update over the batches `fast` uses.
+
+    python benchmarks/train_speed.py [--modes sync,a3c] [--recipes paper,fast] [--batches 3] [--single-pass]
+        [--num-envs N]
 """
 
 from __future__ import annotations
@@ -26,13 +34,31 @@ from bitcomm.train.config import RECIPES, make_train_config
 from bitcomm.train.run import train
 
 
-def measure(mode: str, recipe: str, batches: int, warmup: int, workers: int) -> dict[str, float]:
-    num_envs = RECIPES[recipe]["num_envs"]
+def measure(
+    mode: str,
+    recipe: str,
+    batches: int,
+    warmup: int,
+    workers: int,
+    single_pass: bool = False,
+    num_envs: int | None = None,
+) -> dict[str, float]:
+    num_envs = num_envs or RECIPES[recipe]["num_envs"]
+    reuse = dict(epochs=1, minibatches=1) if single_pass else {}
     w = workers if mode == "a3c" else 1
     if num_envs == 1:  # one-episode batches are short: time more of them
         batches, warmup = batches * 10, warmup * 5
     episodes = (batches + warmup) * w * num_envs
-    cfg = make_train_config(recipe, TaskConfig(), mode=mode, workers=workers, episodes=episodes, checkpoint_seconds=1e9)
+    cfg = make_train_config(
+        recipe,
+        TaskConfig(),
+        mode=mode,
+        workers=workers,
+        num_envs=num_envs,
+        episodes=episodes,
+        checkpoint_seconds=1e9,
+        **reuse,
+    )
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         train(cfg, Path(tmp) / "run", progress=False)
@@ -48,6 +74,8 @@ def measure(mode: str, recipe: str, batches: int, warmup: int, workers: int) -> 
         "wall_s": round(wall, 2),
         "batches": len(rows) - warmup * w,
         "num_envs": num_envs,
+        "passes": cfg.epochs,
+        "gradient_steps_per_batch": cfg.epochs * cfg.minibatches,
         "workers": w,
         "total_s": round(total, 1),
     }
@@ -61,18 +89,25 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=1, help="untimed batches per worker (x5 for one-episode batches)")
     ap.add_argument("--workers", type=int, default=2, help="a3c workers")
     ap.add_argument("--threads", type=int, default=2, help="torch threads in sync mode (default %(default)s)")
+    ap.add_argument(
+        "--single-pass", action="store_true", help="also time each multi-pass recipe with epochs=1, minibatches=1"
+    )
+    ap.add_argument("--num-envs", type=int, default=None, help="episodes per batch (default: each recipe's)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     results = {}
     for recipe in args.recipes.split(","):
-        for mode in args.modes.split(","):
-            r = measure(mode, recipe, args.batches, args.warmup, args.workers)
-            results[f"{mode}/{recipe}"] = r
-            print(
-                f"{mode:5s} {recipe:6s} workers={r['workers']} num_envs={r['num_envs']:4d}: "
-                f"{r['agent_steps_per_s']:>10,.0f} agent-steps/s ({r['agent_steps']} steps in {r['wall_s']} s)",
-                flush=True,
-            )
+        multi_pass = RECIPES[recipe]["epochs"] * RECIPES[recipe]["minibatches"] > 1
+        for single_pass in (False, True) if args.single_pass and multi_pass else (False,):
+            for mode in args.modes.split(","):
+                r = measure(mode, recipe, args.batches, args.warmup, args.workers, single_pass, args.num_envs)
+                name = f"{mode}/{recipe}" + ("/single-pass" if single_pass else "")
+                results[name] = r
+                print(
+                    f"{name:22s} workers={r['workers']} num_envs={r['num_envs']:4d} passes={r['passes']}: "
+                    f"{r['agent_steps_per_s']:>10,.0f} agent-steps/s ({r['agent_steps']} steps in {r['wall_s']} s)",
+                    flush=True,
+                )
     summary = {"benchmark": "train_speed", "task": "default", "torch_threads": args.threads, "results": results}
     print(json.dumps(summary))
 
