@@ -26,22 +26,12 @@ import json
 import multiprocessing as mp
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 RUNGS = (("2x", 2.0), ("1.15x", 1.15))
 GREEDY_RUNG = ("greedy 1.05x", 1.05)
 EVAL_SEED = 12345
-
-
-def _parse_value(text: str) -> Any:
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False}.get(text.lower(), text)
 
 
 def _last_row(run: Path) -> dict[str, str]:
@@ -132,7 +122,10 @@ def _solve_star(item: tuple[dict[str, Any], int]) -> dict[str, Any]:
 
 
 def main() -> None:
-    from bitcomm.train.config import MODEL_OPTIONS, TrainConfig
+    from bitcomm.commands.learning_flags import learning_options
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.errors import ConfigError, check_int, check_number
+    from bitcomm.train.config import make_train_config
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--recipe", default="fast")
@@ -151,17 +144,22 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="default runs/solve/<recipe>-<size>x<size>-<time>")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a TrainConfig option")
     a = ap.parse_args()
-    options = {f.name for f in fields(TrainConfig)} | MODEL_OPTIONS
-    overrides = []
+    options = learning_options()
     for item in a.set:
         name, _, value = item.partition("=")
         if name not in options or not value:
             ap.error(f"--set {item!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(options))}")
-        overrides.append((name, _parse_value(value)))
-    if a.bits is None:
-        from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-
-        a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
+    try:  # bad input is one line before any seed starts
+        overrides = [(name, options[name].parse(value)) for name, _, value in (i.partition("=") for i in a.set)]
+        for name in ("seeds", "jobs", "threads", "chunk", "eval_episodes", "max_episodes"):
+            check_int(name, getattr(a, name), 1)
+        check_number("minutes", a.minutes, 0.0, strict=True)
+        if a.bits is None:
+            a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
+        task = TaskConfig(EnvConfig(size=a.size), ChannelConfig(bits=a.bits))
+        make_train_config(a.recipe, task, estimator=a.estimator, messages=a.messages, **dict(overrides))
+    except ConfigError as err:
+        ap.error(str(err))
     out = a.out or Path("runs/solve") / f"{a.recipe}-{a.size}x{a.size}-{time.strftime('%Y%m%d-%H%M%S')}"
     args = {**vars(a), "out": str(out), "set": overrides}
     seeds = range(a.first_seed, a.first_seed + a.seeds)

@@ -30,6 +30,7 @@ from pathlib import Path
 import torch
 
 from bitcomm.config import TaskConfig
+from bitcomm.errors import ConfigError, bad_value
 from bitcomm.train.config import RECIPES, make_train_config
 from bitcomm.train.run import train
 
@@ -43,7 +44,7 @@ def measure(
     single_pass: bool = False,
     num_envs: int | None = None,
 ) -> dict[str, float]:
-    num_envs = num_envs or RECIPES[recipe]["num_envs"]
+    num_envs = RECIPES[recipe]["num_envs"] if num_envs is None else num_envs
     reuse = dict(epochs=1, minibatches=1) if single_pass else {}
     w = workers if mode == "a3c" else 1
     if num_envs == 1:  # one-episode batches are short: time more of them
@@ -94,12 +95,22 @@ def main() -> None:
     )
     ap.add_argument("--num-envs", type=int, default=None, help="episodes per batch (default: each recipe's)")
     args = ap.parse_args()
+    recipes, modes = args.recipes.split(","), args.modes.split(",")
+    try:  # bad input is one line before anything runs
+        for recipe in recipes:
+            for mode in modes:
+                make_train_config(recipe, mode=mode, workers=args.workers, num_envs=args.num_envs)
+        for name in ("threads", "batches", "warmup"):  # timing starts after the last warm-up batch
+            if getattr(args, name) < 1:
+                raise bad_value(name, getattr(args, name), "must be an integer >= 1")
+    except ConfigError as err:
+        ap.error(str(err))
     torch.set_num_threads(args.threads)
     results = {}
-    for recipe in args.recipes.split(","):
+    for recipe in recipes:
         multi_pass = RECIPES[recipe]["epochs"] * RECIPES[recipe]["minibatches"] > 1
         for single_pass in (False, True) if args.single_pass and multi_pass else (False,):
-            for mode in args.modes.split(","):
+            for mode in modes:
                 r = measure(mode, recipe, args.batches, args.warmup, args.workers, single_pass, args.num_envs)
                 name = f"{mode}/{recipe}" + ("/single-pass" if single_pass else "")
                 results[name] = r

@@ -57,3 +57,11 @@ def test_parse_one_value() -> None:
     for name, text in (("epochs", "1.5"), ("lr", "fast"), ("coords", "maybe")):
         with pytest.raises(ConfigError, match=name):
             options[name].parse(text)
+
+
+def test_a_config_built_in_python_names_a_wrongly_typed_or_out_of_range_value() -> None:
+    bad = {"epochs": 2.5, "num_envs": True, "train_max_steps": -1, "lr": "fast", "clip": float("nan"), "gamma": 1.5}
+    for name, value in bad.items():
+        with pytest.raises(ConfigError, match=f"{name.replace('_', '-')}={value!r}"):
+            make_train_config("fast", **{name: value})
+    assert make_train_config("fast", epochs=2, lr=1, gamma=1).lr == 1  # an int is a number

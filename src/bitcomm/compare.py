@@ -38,7 +38,7 @@ import numpy as np
 
 from bitcomm.commands.learning_flags import Option, learning_options
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.errors import ConfigError, bad_value
+from bitcomm.errors import ConfigError, bad_value, check_int
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policy_source import TASK_FLAGS
 from bitcomm.stats import mean_interval
@@ -154,11 +154,8 @@ class CompareConfig:
     def __post_init__(self) -> None:
         if not self.techniques or any(t not in CHOICES for t in self.techniques):
             raise bad_value("techniques", self.techniques, f"choose from {', '.join(CHOICES)}")
-        for name in ("seeds", "jobs", "eval_episodes"):
-            if int(getattr(self, name)) < 1:
-                raise bad_value(name.replace("_", "-"), getattr(self, name), "must be an integer >= 1")
-        if self.episodes < 1:
-            raise bad_value("episodes", self.episodes, "must be an integer >= 1")
+        for name in ("seeds", "jobs", "eval_episodes", "episodes"):
+            check_int(name, getattr(self, name), 1)
         if 0 <= self.eval_seed < self.seeds:
             raise bad_value("eval-seed", self.eval_seed, f"must not be a training seed (0..{self.seeds - 1})")
         unknown = set(self.vary) - set(varied_options())

@@ -1,5 +1,7 @@
 """One exception type for bad user input, so the CLI can print one line and exit 2."""
 
+import numbers
+
 
 class ConfigError(ValueError):
     """A parameter value outside what is allowed; the message names both."""
@@ -8,3 +10,16 @@ class ConfigError(ValueError):
 def bad_value(name: str, value: object, allowed: str) -> ConfigError:
     """Build the one-line error every entry point uses: parameter, value, what is allowed."""
     return ConfigError(f"invalid {name}={value!r}: {allowed}")
+
+
+def check_int(name: str, value: object, least: int) -> None:
+    """One error line unless `value` is an integer >= `least` (a bool or 2.5 is not; `name` as a flag)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+        raise bad_value(name.replace("_", "-"), value, f"must be an integer >= {least}")
+
+
+def check_number(name: str, value: object, least: float, strict: bool = False) -> None:
+    """One error line unless `value` is a number >= `least` (> with `strict`; NaN never is)."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if not (ok and (value > least if strict else value >= least)):  # type: ignore[operator]
+        raise bad_value(name.replace("_", "-"), value, f"must be {'>' if strict else '>='} {least:g}")

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.errors import bad_value
+from bitcomm.errors import bad_value, check_int
 from bitcomm.heads import MESSAGE_HEADS
 from bitcomm.networks import CriticNet, PolicyNet
 from bitcomm.plotting import save_figure
@@ -84,10 +84,9 @@ class ScalingConfig:
         if not self.sizes or any(not isinstance(s, int) or s < 2 for s in self.sizes):
             raise bad_value("sizes", self.sizes, "grid sides must be integers >= 2")
         for name in ("batch_episodes", "batch_steps", "repeats"):
-            if int(getattr(self, name)) < 1:
-                raise bad_value(name.replace("_", "-"), getattr(self, name), "must be an integer >= 1")
-        if self.num_envs is not None and self.num_envs < 1:
-            raise bad_value("num-envs", self.num_envs, "must be an integer >= 1")
+            check_int(name, getattr(self, name), 1)
+        if self.num_envs is not None:
+            check_int("num_envs", self.num_envs, 1)
         if self.episodes < 0:
             raise bad_value("episodes", self.episodes, "must be >= 0 (0 skips training)")
         if not self.max_memory_gb > 0:

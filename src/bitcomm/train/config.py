@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bitcomm.config import TaskConfig
-from bitcomm.errors import bad_value
+from bitcomm.errors import bad_value, check_int, check_number
 from bitcomm.estimators import ESTIMATORS
 from bitcomm.heads import MESSAGE_HEADS
 from bitcomm.networks import ModelConfig
@@ -98,17 +98,14 @@ class TrainConfig:
             raise bad_value("mode", self.mode, f"choose one of {', '.join(MODES)}")
         if self.recipe not in RECIPES:
             raise bad_value("recipe", self.recipe, f"choose one of {', '.join(RECIPES)}")
-        if int(self.train_max_steps) < 0:
-            raise bad_value("train-max-steps", self.train_max_steps, "must be >= 0 (0: the task's max_steps)")
+        check_int("train_max_steps", self.train_max_steps, 0)  # 0: the task's max_steps
         for name in ("workers", "episodes", "num_envs", "epochs", "minibatches"):
-            if int(getattr(self, name)) < 1:
-                raise bad_value(name.replace("_", "-"), getattr(self, name), "must be an integer >= 1")
+            check_int(name, getattr(self, name), 1)
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
         for name in ("lr", "critic_lr", "map_lr", "max_grad_norm"):
-            if not float(getattr(self, name)) > 0:
-                raise bad_value(name.replace("_", "-"), getattr(self, name), "must be > 0")
-        if not 0.0 < self.gamma <= 1.0:
+            check_number(name, getattr(self, name), 0.0, strict=True)
+        if not (isinstance(self.gamma, float | int) and not isinstance(self.gamma, bool) and 0.0 < self.gamma <= 1.0):
             raise bad_value("gamma", self.gamma, "must be in (0, 1]")
         for name in (
             "entropy_move",
@@ -120,8 +117,7 @@ class TrainConfig:
             "code_coef",
             "channel_noise",
         ):
-            if float(getattr(self, name)) < 0:
-                raise bad_value(name.replace("_", "-"), getattr(self, name), "must be >= 0")
+            check_number(name, getattr(self, name), 0.0)
 
     @property
     def training_task(self) -> TaskConfig:
