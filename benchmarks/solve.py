@@ -15,7 +15,7 @@ The last line printed is one JSON object.
     python benchmarks/solve.py --minutes 15                             # rung 2 (the paper's 10x10)
     python benchmarks/solve.py --minutes 45                             # rung 3
     python benchmarks/solve.py --recipe paper --minutes 15              # the paper's own recipe
-    python benchmarks/solve.py --set gamma=0.8 --set lr=3e-4            # any TrainConfig option
+    python benchmarks/solve.py --set gamma=0.8 --set lr=3e-4            # any learning option (bitcomm train --help)
 """
 
 from __future__ import annotations
@@ -142,7 +142,13 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per seed")
     ap.add_argument("--out", type=Path, default=None, help="default runs/solve/<recipe>-<size>x<size>-<time>")
-    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="a TrainConfig option")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a learning option, as `bitcomm train --help` lists them (field names: num_envs)",
+    )
     a = ap.parse_args()
     options = learning_options()
     for item in a.set:
