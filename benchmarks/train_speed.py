@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from bitcomm.config import TaskConfig
-from bitcomm.errors import ConfigError, bad_value
+from bitcomm.errors import ConfigError, check_int
 from bitcomm.train.config import RECIPES, make_train_config
 from bitcomm.train.run import train
 
@@ -101,8 +101,7 @@ def main() -> None:
             for mode in modes:
                 make_train_config(recipe, mode=mode, workers=args.workers, num_envs=args.num_envs)
         for name in ("threads", "batches", "warmup"):  # timing starts after the last warm-up batch
-            if getattr(args, name) < 1:
-                raise bad_value(name, getattr(args, name), "must be an integer >= 1")
+            check_int(name, getattr(args, name), 1)
     except ConfigError as err:
         ap.error(str(err))
     torch.set_num_threads(args.threads)
