@@ -151,12 +151,12 @@ def main() -> None:
     )
     a = ap.parse_args()
     options = learning_options()
-    for item in a.set:
-        name, _, value = item.partition("=")
+    pairs = [item.partition("=")[::2] for item in a.set]
+    for item, (name, value) in zip(a.set, pairs, strict=True):
         if name not in options or not value:
             ap.error(f"--set {item!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(options))}")
     try:  # bad input is one line before any seed starts
-        overrides = [(name, options[name].parse(value)) for name, _, value in (i.partition("=") for i in a.set)]
+        overrides = [(name, options[name].parse(value)) for name, value in pairs]
         for name in ("seeds", "jobs", "threads", "chunk", "eval_episodes", "max_episodes"):
             check_int(name, getattr(a, name), 1)
         check_number("minutes", a.minutes, 0.0, strict=True)

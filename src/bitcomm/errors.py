@@ -18,8 +18,12 @@ def check_int(name: str, value: object, least: int) -> None:
         raise bad_value(name.replace("_", "-"), value, f"must be an integer >= {least}")
 
 
+def is_number(value: object) -> bool:
+    """A real number that is not a bool (an int counts; NaN is one, and fails every bound)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def check_number(name: str, value: object, least: float, strict: bool = False) -> None:
     """One error line unless `value` is a number >= `least` (> with `strict`; NaN never is)."""
-    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
-    if not (ok and (value > least if strict else value >= least)):  # type: ignore[operator]
+    if not (is_number(value) and (value > least if strict else value >= least)):  # type: ignore[operator]
         raise bad_value(name.replace("_", "-"), value, f"must be {'>' if strict else '>='} {least:g}")

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bitcomm.config import TaskConfig
-from bitcomm.errors import bad_value, check_int, check_number
+from bitcomm.errors import bad_value, check_int, check_number, is_number
 from bitcomm.estimators import ESTIMATORS
 from bitcomm.heads import MESSAGE_HEADS
 from bitcomm.networks import ModelConfig
@@ -105,7 +105,7 @@ class TrainConfig:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
         for name in ("lr", "critic_lr", "map_lr", "max_grad_norm"):
             check_number(name, getattr(self, name), 0.0, strict=True)
-        if not (isinstance(self.gamma, float | int) and not isinstance(self.gamma, bool) and 0.0 < self.gamma <= 1.0):
+        if not (is_number(self.gamma) and 0.0 < self.gamma <= 1.0):
             raise bad_value("gamma", self.gamma, "must be in (0, 1]")
         for name in (
             "entropy_move",
