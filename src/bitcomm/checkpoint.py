@@ -3,20 +3,29 @@
 Each checkpoint is two files with the same stem, `ckpt_<episodes:09d>`:
 
 - `.safetensors`: the weights, keys prefixed `policy.` and `critic.`, and in the safetensors metadata
-  the training config (JSON), the episodes and batches played, and the format version. This file
-  alone is enough to act (`bitcomm.Controller`).
+  the training config (JSON), the episodes and batches played, the rolling mean episode length, the
+  format version, the sha256 of the state file and `sha256`, a checksum of everything else in the file
+  (metadata and tensors), verified on every load. This file alone is enough to act (`bitcomm.Controller`).
 - `.state.pt`: what resuming needs besides the weights (optimizer states, the sampling generator,
-  counters, the recent episode lengths of the rolling mean); read with `torch.load(weights_only=True)`.
+  counters, the recent episode lengths of the rolling mean); read with `torch.load(weights_only=True)`
+  after its checksum is compared with the one its weights file records.
 
 Every file is written to a temporary name in the same folder and renamed into place (atomic on
-POSIX), and `latest.json` is replaced only once both files of a checkpoint exist, so a run killed at
-any moment leaves a readable latest checkpoint. Checkpoints are kept, not rotated.
+POSIX): the state first, then the weights, then `latest.json`, which is replaced only once both files
+of a checkpoint exist, so a run killed at any moment leaves a readable latest checkpoint. What a kill
+leaves besides (temporary files, a state without its weights, files newer than `latest.json`) is
+removed by `clean` when a run starts or resumes. Nothing non-finite is ever written (`Diverged`).
+`prune` keeps the last N checkpoints and the best one (lowest rolling mean episode length).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
 import os
+import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,26 +34,91 @@ import torch
 from bitcomm.errors import ConfigError
 
 FORMAT = "bitcomm-checkpoint"
-VERSION = 1
+VERSION = 2
+"""1: no checksums (still read, unverified); 2: `sha256`, `state_sha256` and `rolling_length`."""
 LATEST = "latest.json"
 CHECKPOINTS = "checkpoints"
+NAME = re.compile(r"ckpt_(\d{9})\.(safetensors|state\.pt)")
+"""A checkpoint file's name; `latest.json` may name nothing else (so it cannot leave the folder)."""
+
+
+class Diverged(ConfigError):
+    """Training produced a NaN or infinite weight or optimizer value; it was not saved."""
 
 
 def _bad(path: Path | str, why: str) -> ConfigError:
     return ConfigError(f"invalid checkpoint={str(path)!r}: {why}")
 
 
-def _atomic(path: Path, write: Any) -> None:
-    """`write(tmp_path)` then rename over `path`."""
+def _atomic(path: Path, write: Any) -> str:
+    """`write(tmp_path)` then rename over `path`; returns the sha256 of what was written."""
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
         write(tmp)
+        digest = file_sha256(tmp)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
+    return digest
 
 
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def content_sha256(tensors: dict[str, torch.Tensor], meta: dict[str, str]) -> str:
+    """A checksum of a weights file's metadata (but its own `sha256`) and tensors: names, dtypes, shapes, bytes."""
+    h = hashlib.sha256(json.dumps({k: v for k, v in meta.items() if k != "sha256"}, sort_keys=True).encode())
+    for name in sorted(tensors):
+        t = tensors[name].detach().contiguous()
+        h.update(f"\n{name}|{t.dtype}|{tuple(t.shape)}\n".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------- NaN guard
+def _tensors(obj: Any, name: str) -> Iterator[tuple[str, torch.Tensor]]:
+    """Every tensor inside nested dicts and lists, with a dotted name."""
+    if isinstance(obj, torch.Tensor):
+        yield name, obj
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _tensors(v, f"{name}.{k}")
+    elif isinstance(obj, (list, tuple)):
+        for k, v in enumerate(obj):
+            yield from _tensors(v, f"{name}.{k}")
+
+
+def first_nonfinite(**groups: Any) -> str | None:
+    """The name of the first floating-point tensor holding a NaN or inf, or None."""
+    for group, obj in groups.items():
+        for name, t in _tensors(obj, group):
+            if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                return name
+    return None
+
+
+def refuse_nonfinite(run: Path, episodes: int, **groups: Any) -> None:
+    """Stop the run with one line, writing nothing, if a weight or optimizer value is NaN or inf."""
+    name = first_nonfinite(**groups)
+    if name is None:
+        return
+    try:
+        kept = f"the latest checkpoint stays {read_latest(Path(run) / CHECKPOINTS)['checkpoint']}"
+    except ConfigError:
+        kept = "no checkpoint was written"
+    raise Diverged(
+        f"training diverged after {episodes} episodes: {name} holds NaN or inf; stopped without saving it, "
+        f"{kept} (a smaller --lr may help)"
+    )
+
+
+# ---------------------------------------------------------------------------------------------- write
 def save_checkpoint(
     run: Path,
     config: dict[str, Any],
@@ -52,67 +126,182 @@ def save_checkpoint(
     episodes: int,
     batches: int,
     state: dict[str, Any],
+    rolling_length: float | None = None,
+    keep: int | None = None,
 ) -> Path:
-    """Write `ckpt_<episodes>.safetensors` + `.state.pt` and point `latest.json` at them."""
+    """Write `ckpt_<episodes>.state.pt` + `.safetensors` and point `latest.json` at them; then, with
+    `keep`, `prune` to the last `keep` and the best. Nothing is written if a value is not finite."""
     from safetensors.torch import save_file
 
+    refuse_nonfinite(run, episodes, **weights, state=state)
     folder = run / CHECKPOINTS
     folder.mkdir(parents=True, exist_ok=True)
     stem = f"ckpt_{episodes:09d}"
     tensors = {
         f"{prefix}.{k}": v.detach().contiguous().clone() for prefix, sd in weights.items() for k, v in sd.items()
     }
+    weights_path = folder / f"{stem}.safetensors"
+    state_path = folder / f"{stem}.state.pt"
+    state_sha = _atomic(state_path, lambda p: torch.save({**state, "episodes": episodes, "batches": batches}, p))
     meta = {
         "format": FORMAT,
         "version": str(VERSION),
         "config": json.dumps(config),
         "episodes": str(episodes),
         "batches": str(batches),
+        "rolling_length": repr(float("nan") if rolling_length is None else float(rolling_length)),
+        "state_sha256": state_sha,
     }
-    weights_path = folder / f"{stem}.safetensors"
-    state_path = folder / f"{stem}.state.pt"
+    meta["sha256"] = content_sha256(tensors, meta)
     _atomic(weights_path, lambda p: save_file(tensors, str(p), metadata=meta))
-    _atomic(state_path, lambda p: torch.save({**state, "episodes": episodes, "batches": batches}, p))
     pointer = {"checkpoint": weights_path.name, "state": state_path.name, "episodes": episodes, "batches": batches}
     _atomic(folder / LATEST, lambda p: p.write_text(json.dumps(pointer) + "\n"))
+    if keep is not None:
+        prune(folder, keep)
     return weights_path
+
+
+# ---------------------------------------------------------------------------------------------- find
+def _folder(path: Path | str) -> Path:
+    p = Path(path)
+    return p / CHECKPOINTS if (p / CHECKPOINTS).is_dir() else p
+
+
+def read_latest(folder: Path) -> dict[str, Any]:
+    """`latest.json` of a checkpoints folder, checked: it names a checkpoint file of this very folder."""
+    latest = folder / LATEST
+    try:
+        pointer = json.loads(latest.read_text())
+    except FileNotFoundError:
+        raise _bad(latest, "no such file (not a bitcomm run)") from None
+    except (OSError, ValueError) as err:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        raise _bad(latest, f"unreadable ({type(err).__name__}: {err})") from None
+    name = pointer.get("checkpoint") if isinstance(pointer, dict) else None
+    match = NAME.fullmatch(name) if isinstance(name, str) else None
+    if match is None or match.group(2) != "safetensors":
+        raise _bad(latest, f"'checkpoint' must name a ckpt_<episodes>.safetensors file of its folder, not {name!r}")
+    episodes = pointer.get("episodes", int(match.group(1)))
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes != int(match.group(1)):
+        raise _bad(latest, f"'episodes' must be {int(match.group(1))} (the checkpoint it names), not {episodes!r}")
+    file = folder / match.group(0)
+    if file.is_symlink() and file.resolve().parent != folder.resolve():
+        raise _bad(latest, f"{name} links outside the run folder")
+    return dict(pointer)
 
 
 def resolve(path: Path | str) -> Path:
     """A run folder, its `checkpoints/` folder or a `.safetensors` file -> the checkpoint file."""
     p = Path(path)
     if p.is_dir():
-        folder = p / CHECKPOINTS if (p / CHECKPOINTS).is_dir() else p
-        latest = folder / LATEST
-        if not latest.is_file():
+        folder = _folder(p)
+        if not (folder / LATEST).is_file():
             raise _bad(path, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
-        try:
-            name = json.loads(latest.read_text())["checkpoint"]
-        except (ValueError, KeyError, TypeError) as err:
-            raise _bad(path, f"unreadable {LATEST} ({err})") from None
-        p = folder / name
+        p = folder / read_latest(folder)["checkpoint"]
+        if not p.is_file():
+            raise _bad(folder / LATEST, f"names {p.name}, which is missing")
     if not p.is_file():
         raise _bad(path, "no such file or run folder")
     return p
 
 
+def _stems(folder: Path) -> dict[int, set[str]]:
+    """Episodes -> the kinds of checkpoint file present (`safetensors`, `state.pt`)."""
+    found: dict[int, set[str]] = {}
+    for file in folder.glob("ckpt_*"):
+        match = NAME.fullmatch(file.name)
+        if match:
+            found.setdefault(int(match.group(1)), set()).add(match.group(2))
+    return found
+
+
 def checkpoints(run: Path | str) -> list[tuple[int, Path]]:
-    """Every checkpoint a run kept, as `(episodes, weights file)` in training order (checkpoints are
-    not rotated, so these are the run's stages). Files of an unfinished write (no `.state.pt`) are left out."""
-    p = Path(run)
-    folder = p / CHECKPOINTS if (p / CHECKPOINTS).is_dir() else p
+    """Every checkpoint a run kept (see `prune`), as `(episodes, weights file)` in training order.
+    Files of an unfinished write (no `.state.pt`) are left out."""
+    folder = _folder(run)
     if not (folder / LATEST).is_file():
         raise _bad(run, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
-    found = []
-    for file in folder.glob("ckpt_*.safetensors"):
-        stem = file.name.removesuffix(".safetensors")
-        if stem[5:].isdigit() and file.with_name(f"{stem}.state.pt").is_file():
-            found.append((int(stem[5:]), file))
-    return sorted(found)
+    return [
+        (e, folder / f"ckpt_{e:09d}.safetensors")
+        for e, kinds in sorted(_stems(folder).items())
+        if kinds == {"safetensors", "state.pt"}
+    ]
+
+
+# ---------------------------------------------------------------------------------------------- tidy
+def _remove(folder: Path, episodes: int) -> None:
+    """Both files of a checkpoint, the weights first: a half-removed one is never listed."""
+    for suffix in ("safetensors", "state.pt"):
+        (folder / f"ckpt_{episodes:09d}.{suffix}").unlink(missing_ok=True)
+
+
+def clean(run: Path) -> list[str]:
+    """Remove what a killed writer left in a run folder (call it holding the run's lock): temporary
+    files, checkpoint files without their pair, and checkpoints newer than `latest.json` (never committed;
+    all of them when there is no `latest.json`). Returns the names removed."""
+    removed = []
+    folder = run / CHECKPOINTS
+    for where in (run, folder):
+        for tmp in where.glob(".*.tmp*"):
+            if tmp.is_file():
+                tmp.unlink()
+                removed.append(tmp.name)
+    if not folder.is_dir():
+        return removed
+    committed = read_latest(folder)["episodes"] if (folder / LATEST).is_file() else -1
+    for episodes, kinds in _stems(folder).items():
+        if kinds != {"safetensors", "state.pt"} or episodes > committed:
+            _remove(folder, episodes)
+            removed += [f"ckpt_{episodes:09d}.{k}" for k in sorted(kinds)]
+    return removed
+
+
+def rolling_length(file: Path) -> float:
+    """The rolling mean episode length a checkpoint recorded (inf where it has none)."""
+    try:
+        value = float(_metadata(file).get("rolling_length", "inf"))
+    except (ConfigError, ValueError):
+        return math.inf
+    return value if math.isfinite(value) else math.inf
+
+
+def prune(folder: Path, keep: int) -> list[int]:
+    """Remove every checkpoint but the last `keep` and the best (lowest rolling mean episode length,
+    the later of equals); `latest.json`'s is always among the last. Returns the episodes removed."""
+    kept = checkpoints(folder)
+    if len(kept) <= keep:
+        return []
+    best = min(kept, key=lambda ef: (rolling_length(ef[1]), -ef[0]))[0]
+    gone = [e for e, _ in kept[:-keep] if e != best]
+    for episodes in gone:
+        _remove(folder, episodes)
+    return gone
+
+
+# ---------------------------------------------------------------------------------------------- read
+def _metadata(file: Path) -> dict[str, str]:
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(file), framework="pt") as f:
+            return dict(f.metadata() or {})
+    except Exception as err:  # safetensors raises its own error types for damaged files
+        raise _bad(file, f"not a bitcomm checkpoint ({type(err).__name__}: {err})") from None
+
+
+def _version(file: Path, meta: dict[str, str]) -> int:
+    if meta.get("format") != FORMAT:
+        raise _bad(file, "not a bitcomm checkpoint (no bitcomm metadata)")
+    text = meta.get("version", "")
+    if not text.isdigit():
+        raise _bad(file, f"metadata version {text!r} is not a whole number")
+    if int(text) > VERSION:
+        raise _bad(file, f"format version {text} is newer than this bitcomm reads ({VERSION})")
+    return int(text)
 
 
 def load_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
-    """Weights by prefix (`policy`, `critic`) and metadata (config as a dict, episodes, batches)."""
+    """Weights by prefix (`policy`, `critic`) and metadata (config as a dict, episodes, batches),
+    refused with one line if the file's checksum does not match what it holds."""
     from safetensors import safe_open
 
     file = resolve(path)
@@ -121,11 +310,9 @@ def load_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], 
             meta = f.metadata() or {}
             tensors = {k: f.get_tensor(k) for k in f.keys()}
     except Exception as err:  # safetensors raises its own error types for damaged files
-        raise _bad(path, f"not a bitcomm checkpoint ({type(err).__name__}: {err})") from None
-    if meta.get("format") != FORMAT:
-        raise _bad(path, "not a bitcomm checkpoint (no bitcomm metadata)")
-    if int(meta.get("version", -1)) > VERSION:
-        raise _bad(path, f"format version {meta['version']} is newer than this bitcomm reads ({VERSION})")
+        raise _bad(file, f"not a bitcomm checkpoint ({type(err).__name__}: {err})") from None
+    if _version(file, meta) >= 2 and content_sha256(tensors, meta) != meta.get("sha256"):
+        raise _bad(file, "checksum mismatch: the file was changed or damaged after it was written")
     weights: dict[str, dict[str, torch.Tensor]] = {}
     for key, value in tensors.items():
         prefix, _, name = key.partition(".")
@@ -137,17 +324,24 @@ def load_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], 
             "batches": int(meta["batches"]),
         }
     except (KeyError, ValueError) as err:
-        raise _bad(path, f"not a bitcomm checkpoint (bad metadata: {err})") from None
+        raise _bad(file, f"not a bitcomm checkpoint (bad metadata: {err})") from None
+    if not isinstance(info["config"], dict):
+        raise _bad(file, "not a bitcomm checkpoint (its config is not a JSON object)")
     return weights, {**info, "path": str(file)}
 
 
 def load_state(weights_file: Path) -> dict[str, Any]:
-    """The resume state stored next to a checkpoint's weights."""
+    """The resume state stored next to a checkpoint's weights, checked against the weights' record of it."""
     state_path = weights_file.with_name(weights_file.name.replace(".safetensors", ".state.pt"))
     if not state_path.is_file():
         raise _bad(weights_file, f"its resume state {state_path.name} is missing")
+    meta = _metadata(weights_file)
+    if _version(weights_file, meta) >= 2 and file_sha256(state_path) != meta.get("state_sha256"):
+        raise _bad(state_path, "checksum mismatch: the file was changed or damaged after it was written")
     try:
-        state: dict[str, Any] = torch.load(state_path, weights_only=True)
+        state = torch.load(state_path, weights_only=True)
     except Exception as err:
         raise _bad(state_path, f"not a bitcomm resume state ({type(err).__name__}: {err})") from None
+    if not isinstance(state, dict):
+        raise _bad(state_path, "not a bitcomm resume state (not a dict)")
     return state

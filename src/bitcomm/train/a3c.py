@@ -16,7 +16,6 @@ as sync mode). Runs are seeded but, being asynchronous, not reproducible bit for
 
 from __future__ import annotations
 
-import json
 import queue as queue_mod
 import time
 import traceback
@@ -29,7 +28,7 @@ import torch
 import torch.multiprocessing as mp
 from torch import nn
 
-from bitcomm.checkpoint import save_checkpoint
+from bitcomm.checkpoint import first_nonfinite, save_checkpoint
 from bitcomm.train.codebook import CodeBook
 from bitcomm.train.config import TrainConfig
 from bitcomm.train.run import (
@@ -37,9 +36,12 @@ from bitcomm.train.run import (
     Progress,
     _prepare,
     checkpoint_weights,
+    finite_or_stop,
     oracle_level,
     plot_learning_curve,
+    read_config_json,
     restore_learner,
+    rolling_length,
     write_config,
 )
 
@@ -170,7 +172,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
         restore_learner(learner, saved)
         prog.restore(saved)
         start_batch = int(saved.get("next_batch", prog.batches))
-        previous = json.loads((out / "config.json").read_text())
+        previous = read_config_json(out)
         extra = {"oracle_mean_episode_length": previous.get("oracle_mean_episode_length")}
     else:
         extra = {"oracle_mean_episode_length": oracle_level(cfg)}
@@ -205,7 +207,16 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 "next_batch": next_batch.value,
             }
             state = {k: _clone(v) for k, v in state.items()}
-        path = save_checkpoint(out, cfg.to_dict(), weights, prog.episodes, prog.batches, state)
+        path = save_checkpoint(
+            out,
+            cfg.to_dict(),
+            weights,
+            prog.episodes,
+            prog.batches,
+            state,
+            rolling_length=rolling_length(prog),
+            keep=cfg.keep_checkpoints,
+        )
         plot_learning_curve(out)
         return path
 
@@ -225,6 +236,8 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                     raise RuntimeError(f"a3c worker {dead[0]} died (exit code {procs[dead[0]].exitcode})") from None
                 continue
             if msg[0] == "error":
+                if first_nonfinite(**checkpoint_weights(learner)):  # a worker failed on NaN weights: say so
+                    finite_or_stop(out, learner, prog.episodes)
                 raise RuntimeError(f"a3c worker {msg[1]} failed:\n{msg[2]}")
             if msg[0] == "done":
                 done.add(msg[1])
@@ -247,6 +260,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 "charts/success": float(success.mean()),
                 **stats,
             }
+            finite_or_stop(out, learner, prog.episodes)
             logger.log(row)
             bar.update(len(length))
             bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")

@@ -88,6 +88,8 @@ class TrainConfig:
     (a uniform map); a decoder is a small linear read-out that the policy's rate would fit slowly."""
     checkpoint_seconds: float = 60.0
     """Write a checkpoint at most this often (and at the end)."""
+    keep_checkpoints: int = 3
+    """Checkpoints kept on disk: the last this many, and the best (lowest rolling mean episode length)."""
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -99,7 +101,7 @@ class TrainConfig:
         if self.recipe not in RECIPES:
             raise bad_value("recipe", self.recipe, f"choose one of {', '.join(RECIPES)}")
         check_int("train_max_steps", self.train_max_steps, 0)  # 0: the task's max_steps
-        for name in ("workers", "episodes", "num_envs", "epochs", "minibatches"):
+        for name in ("workers", "episodes", "num_envs", "epochs", "minibatches", "keep_checkpoints"):
             check_int(name, getattr(self, name), 1)
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")

@@ -5,6 +5,11 @@
     <out>/tb/                  the same rows for TensorBoard
     <out>/learning_curve.png   mean episode length against episodes, from metrics.csv (and .svg)
     <out>/checkpoints/         see bitcomm.checkpoint
+    <out>/.lock                held by the one process writing the folder (bitcomm.run_lock)
+
+A run holds the folder's lock while it trains; it starts by removing what a killed run left (see
+`bitcomm.checkpoint.clean`), checks its weights after every update and stops, keeping its last good
+checkpoint as `latest`, the moment one is NaN or infinite.
 
 `sync` mode: batch k plays `num_envs` whole episodes seeded by `SeedSequence(seed, spawn_key=(k,))`
 and makes one learner update; the weights are initialised under `torch.manual_seed(seed)` and all
@@ -29,9 +34,19 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_state, load_weights, resolve, save_checkpoint
+from bitcomm.checkpoint import (
+    CHECKPOINTS,
+    LATEST,
+    clean,
+    load_state,
+    load_weights,
+    refuse_nonfinite,
+    resolve,
+    save_checkpoint,
+)
 from bitcomm.errors import ConfigError
 from bitcomm.plotting import save_figure
+from bitcomm.run_lock import run_lock
 from bitcomm.train.config import TrainConfig
 
 ROLLING = 1000
@@ -87,6 +102,33 @@ def write_config(cfg: TrainConfig, out: Path, extra: dict[str, Any]) -> None:
     tmp.replace(out / "config.json")
 
 
+def read_config_json(out: Path) -> dict[str, Any]:
+    """The run's config.json, or one line naming it when it is missing or not a JSON object."""
+    path = out / "config.json"
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"invalid config={str(path)!r}: unreadable ({type(err).__name__}: {err})") from None
+    if not isinstance(record, dict):
+        raise ConfigError(f"invalid config={str(path)!r}: not a JSON object")
+    return record
+
+
+def read_metrics(path: Path, upto_batch: int) -> list[dict[str, str]]:
+    """The rows of metrics.csv up to a batch (a torn last row, from a kill, is dropped); one line if corrupt."""
+    try:
+        with path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        if rows and None in rows[-1].values():
+            rows.pop()
+        return [r for r in rows if int(r["batch"]) <= upto_batch]
+    except (OSError, ValueError, KeyError, TypeError, csv.Error) as err:
+        raise ConfigError(
+            f"invalid metrics={str(path)!r}: unreadable on resume ({type(err).__name__}: {err}); "
+            "repair or remove it to resume"
+        ) from None
+
+
 class Logger:
     """One row per batch, to metrics.csv and TensorBoard alike (x axis: episodes)."""
 
@@ -96,8 +138,7 @@ class Logger:
         self.path = out / "metrics.csv"
         self.columns: list[str] | None = None
         if resume_batches is not None and self.path.is_file():
-            with self.path.open(newline="") as f:
-                rows = [r for r in csv.DictReader(f) if int(r["batch"]) <= resume_batches]
+            rows = read_metrics(self.path, resume_batches)
             if rows:
                 self.columns = list(rows[0])
             with self.path.open("w", newline="") as f:  # drop rows past the checkpoint
@@ -210,25 +251,49 @@ def has_checkpoint(out: Path) -> bool:
 def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
     """Train in `cfg.mode` until `cfg.episodes` episodes are played; returns the latest checkpoint."""
     out = Path(out)
-    if cfg.mode == "a3c":
-        from bitcomm.train.a3c import train_a3c
+    if resume and not has_checkpoint(out):
+        raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})") from None
+    with run_lock(out):
+        if cfg.mode == "a3c":
+            from bitcomm.train.a3c import train_a3c
 
-        return train_a3c(cfg, out, resume=resume, progress=progress)
-    return train_sync(cfg, out, resume=resume, progress=progress)
+            return train_a3c(cfg, out, resume=resume, progress=progress)
+        return train_sync(cfg, out, resume=resume, progress=progress)
 
 
 def _prepare(cfg: TrainConfig, out: Path, resume: bool) -> dict[str, Any] | None:
-    """Check the folder; on resume return the checkpoint's state (with its weights), else None."""
+    """Check the folder (its lock held) and clear what a killed run left; on resume return the
+    checkpoint's state (with its weights), else None."""
     if not resume:
         if has_checkpoint(out):
             raise ConfigError(f"invalid out={str(out)!r}: it already holds a run (use --resume, or another --out)")
-        out.mkdir(parents=True, exist_ok=True)
+        clean(out)
         return None
     if not has_checkpoint(out):
         raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
+    clean(out)
     weights, info = load_weights(out)
     state = load_state(resolve(out))
+    for key in ("episodes", "batches", "agent_steps", "wall_s", "recent_lengths", "recent_returns"):
+        if key not in state:
+            raise ConfigError(f"invalid checkpoint={info['path']!r}: its resume state lacks {key!r}")
+    read_config_json(out)  # refuse a damaged config.json or metrics.csv before anything is written
+    if (out / "metrics.csv").is_file():
+        read_metrics(out / "metrics.csv", int(state["batches"]))
     return {**state, "weights": weights, "info": info}
+
+
+def finite_or_stop(out: Path, learner: Any, episodes: int) -> None:
+    """After an update: stop with one line if a weight became NaN or inf (the next rollout could not sample)."""
+    refuse_nonfinite(out, episodes, **checkpoint_weights(learner))
+
+
+def rolling_length(prog: Progress) -> float | None:
+    return float(np.mean(prog.recent)) if prog.recent else None
 
 
 def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
@@ -248,9 +313,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
         generator.set_state(saved["generator"])
         torch.set_rng_state(saved["torch_rng"])  # anything drawing from the global generator continues too
         prog.restore(saved)
-        config_extra = {
-            k: v for k, v in json.loads((out / "config.json").read_text()).items() if k == "oracle_mean_episode_length"
-        }
+        config_extra = {k: v for k, v in read_config_json(out).items() if k == "oracle_mean_episode_length"}
     else:
         config_extra = {"oracle_mean_episode_length": oracle_level(cfg)}
     write_config(cfg, out, config_extra)
@@ -265,7 +328,16 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
             "generator": generator.get_state(),
             "torch_rng": torch.get_rng_state(),
         }
-        path = save_checkpoint(out, cfg.to_dict(), checkpoint_weights(learner), prog.episodes, prog.batches, state)
+        path = save_checkpoint(
+            out,
+            cfg.to_dict(),
+            checkpoint_weights(learner),
+            prog.episodes,
+            prog.batches,
+            state,
+            rolling_length=rolling_length(prog),
+            keep=cfg.keep_checkpoints,
+        )
         plot_learning_curve(out)
         return path
 
@@ -280,6 +352,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
             ro = collector.collect(learner.policy, seed, generator)
             # update
             stats = learner.update(ro, generator, progress=prog.episodes / cfg.episodes)
+            finite_or_stop(out, learner, prog.episodes + len(ro.length))
             prog.wall_s += time.perf_counter() - t0
             prog.batches += 1
             prog.episodes += len(ro.length)

@@ -1,0 +1,320 @@
+"""A run folder that cannot be corrupted: one writer at a time (the lock names its holder's pid, a dead
+holder blocks nothing), nothing non-finite checkpointed, every weight and state file checksummed,
+`latest.json` confined to its folder, what a kill leaves removed on start and resume, and checkpoint
+retention (the last N and the best). Errors are one line with exit status 2 from the real CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from bitcomm.checkpoint import (
+    Diverged,
+    checkpoints,
+    clean,
+    load_state,
+    load_weights,
+    resolve,
+    rolling_length,
+    save_checkpoint,
+)
+from bitcomm.cli import main
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError
+from bitcomm.run_lock import LOCK, run_lock
+
+TASK = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16"]
+QUICK = [*TASK, "--threads", "1", "--quiet", "--eval-episodes", "0", "--checkpoint-seconds", "0"]
+ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+HOLD = """import sys, time
+from bitcomm.run_lock import run_lock
+with run_lock(sys.argv[1]):
+    print("locked", flush=True)
+    time.sleep(120)
+"""
+"""A process that holds a run folder's lock until it is killed."""
+
+
+def cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str]:
+    try:
+        rc = main(list(argv))
+    except SystemExit as e:  # argparse
+        rc = int(e.code or 0)
+    return rc, capsys.readouterr().err
+
+
+def refused(capsys: pytest.CaptureFixture[str], *argv: str, naming: str) -> str:
+    """Run the CLI; assert exit status 2 and one stderr line that contains `naming`."""
+    rc, err = cli(capsys, *argv)
+    lines = err.strip().splitlines()
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert naming in lines[0], lines[0]
+    return lines[0]
+
+
+def tiny_config(**kw):
+    from bitcomm.train.config import make_train_config
+
+    task = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
+    return make_train_config(task=task, **{"num_envs": 16, "episodes": 48, "checkpoint_seconds": 0.0, **kw})
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A finished run of 3 batches, a checkpoint after each; tests tamper with copies of it."""
+    from bitcomm.train.run import train
+
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("trained") / "run"
+    train(tiny_config(), out, progress=False)
+    return out
+
+
+@pytest.fixture
+def run(trained: Path, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(trained, tmp_path / "run"))
+
+
+def leftovers(run: Path) -> list[str]:
+    """Temporary files and checkpoint files without their pair."""
+    names = [p.name for p in (run / "checkpoints").iterdir()] + [p.name for p in run.iterdir()]
+    tmp = [n for n in names if ".tmp" in n]
+    stems = {n.split(".")[0] for n in names if n.startswith("ckpt_")}
+    unpaired = [s for s in stems if not {f"{s}.safetensors", f"{s}.state.pt"} <= set(names)]
+    return tmp + unpaired
+
+
+# ---------------------------------------------------------------------------------------------- lock
+def test_a_second_writer_is_refused_with_the_holders_pid(run: Path, tmp_path: Path, capsys) -> None:
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    holders = [
+        subprocess.Popen([sys.executable, "-c", HOLD, str(folder)], stdout=subprocess.PIPE, text=True, env=ENV)
+        for folder in (run, fresh)
+    ]
+    try:
+        for h in holders:
+            assert h.stdout is not None and h.stdout.readline().strip() == "locked"
+        before = (run / "checkpoints" / "latest.json").read_text()
+        line = refused(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64", naming=str(run))
+        assert f"pid {holders[0].pid}" in line and "another process" in line
+        line = refused(capsys, "train", *QUICK, "--episodes", "16", "--out", str(fresh), naming=f"pid {holders[1].pid}")
+        assert (run / "checkpoints" / "latest.json").read_text() == before
+        assert list(fresh.iterdir()) == [fresh / LOCK]
+    finally:
+        for h in holders:
+            h.send_signal(signal.SIGKILL)
+            h.wait()
+    # the killed holder's lock file stays, naming a dead pid, and blocks nothing
+    assert (fresh / LOCK).read_text().strip() == str(holders[1].pid)
+    rc, err = cli(capsys, "train", *QUICK, "--episodes", "16", "--out", str(fresh))
+    assert rc == 0, err
+    assert checkpoints(fresh)[-1][0] == 16
+
+
+def test_the_lock_is_reentrant_in_one_process_and_released(tmp_path: Path) -> None:
+    with run_lock(tmp_path), run_lock(tmp_path):
+        assert (tmp_path / LOCK).read_text().strip() == str(os.getpid())
+    with run_lock(tmp_path):  # released: it can be taken again
+        pass
+    with pytest.raises(ConfigError, match="lock file"):
+        with run_lock(tmp_path / "missing"):
+            pass
+
+
+# ---------------------------------------------------------------------------------------------- NaN
+def test_a_diverging_run_stops_and_keeps_its_last_good_checkpoint(
+    tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from bitcomm.train.learner import Learner
+
+    real_update, calls = Learner.update, []
+
+    def update(self, *args, **kwargs):  # the third update blows a weight up
+        stats = real_update(self, *args, **kwargs)
+        calls.append(1)
+        if len(calls) == 3:
+            with torch.no_grad():
+                next(self.policy.parameters()).view(-1)[0] = float("nan")
+        return stats
+
+    monkeypatch.setattr(Learner, "update", update)
+    out = tmp_path / "run"
+    line = refused(capsys, "train", *QUICK, "--episodes", "160", "--out", str(out), naming="diverged after 48 episodes")
+    assert "NaN or inf" in line and "ckpt_000000032.safetensors" in line
+    assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] == 32
+    assert [e for e, _ in checkpoints(out)] == [16, 32]
+    weights, _ = load_weights(out)
+    assert all(bool(torch.isfinite(t).all()) for sd in weights.values() for t in sd.values())
+    monkeypatch.setattr(Learner, "update", real_update)  # the last good checkpoint resumes
+    rc, err = cli(capsys, "train", *QUICK, "--episodes", "64", "--out", str(out), "--resume")
+    assert rc == 0, err
+
+
+def test_a_huge_learning_rate_ends_with_one_line(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "run"
+    refused(capsys, "train", *QUICK, "--episodes", "64", "--lr", "1e30", "--out", str(out), naming="diverged")
+    assert not (out / "checkpoints" / "latest.json").exists()
+
+
+def test_save_checkpoint_writes_nothing_non_finite(tmp_path: Path) -> None:
+    good = {"policy": {"w": torch.ones(3)}}
+    save_checkpoint(tmp_path, {}, good, episodes=1, batches=1, state={})
+    for bad_weights, state in (
+        ({"policy": {"w": torch.tensor([1.0, float("inf")])}}, {}),
+        (good, {"opt": {"state": {0: {"exp_avg": torch.tensor([float("nan")])}}}}),
+    ):
+        with pytest.raises(Diverged, match="the latest checkpoint stays ckpt_000000001"):
+            save_checkpoint(tmp_path, {}, bad_weights, episodes=2, batches=2, state=state)
+    assert [e for e, _ in checkpoints(tmp_path)] == [1]
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
+        "ckpt_000000001.safetensors",
+        "ckpt_000000001.state.pt",
+        "latest.json",
+    ]
+
+
+# ---------------------------------------------------------------------------------------------- checksum
+def _flip_last_byte(path: Path) -> None:
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 0x40
+    path.write_bytes(bytes(data))
+
+
+def test_garbled_weights_or_state_are_refused(run: Path, capsys) -> None:
+    weights_file = resolve(run)
+    load_state(weights_file)  # intact: read without complaint
+    state_file = weights_file.with_name(weights_file.name.replace(".safetensors", ".state.pt"))
+    _flip_last_byte(state_file)
+    refused(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64", naming=state_file.name)
+    _flip_last_byte(weights_file)  # a tensor's last byte: still a valid safetensors file
+    line = refused(capsys, "eval", str(run), "--episodes", "10", naming=weights_file.name)
+    assert "checksum mismatch" in line
+    refused(capsys, "eval", str(weights_file), "--episodes", "10", naming="checksum mismatch")
+
+
+def test_tampered_metadata_is_refused(run: Path) -> None:
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    file = resolve(run)
+    with safe_open(str(file), framework="pt") as f:
+        meta, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
+    save_file(tensors, str(file), metadata={**meta, "episodes": "1000000"})
+    with pytest.raises(ConfigError, match="checksum mismatch"):
+        load_weights(file)
+
+
+# ---------------------------------------------------------------------------------------------- latest
+@pytest.mark.parametrize(
+    "pointer",
+    ["../../outside.safetensors", "/etc/passwd", "../checkpoints/ckpt_000000016.safetensors", "ckpt_1.safetensors"],
+)
+def test_latest_cannot_leave_the_run_folder(run: Path, pointer: str, capsys) -> None:
+    outside = run.parent / "outside.safetensors"
+    shutil.copy(resolve(run), outside)
+    (run / "checkpoints" / "latest.json").write_text(json.dumps({"checkpoint": pointer, "episodes": 16}))
+    refused(capsys, "eval", str(run), "--episodes", "10", naming="latest.json")
+
+
+def test_latest_cannot_follow_a_link_outside(run: Path, capsys) -> None:
+    outside = run.parent / "elsewhere"
+    outside.mkdir()
+    file = resolve(run)
+    shutil.move(file, outside / file.name)
+    file.symlink_to(outside / file.name)
+    refused(capsys, "eval", str(run), "--episodes", "10", naming="links outside the run folder")
+
+
+# ---------------------------------------------------------------------------------------------- leftovers
+def test_resume_removes_what_a_kill_left(run: Path, capsys) -> None:
+    folder = run / "checkpoints"
+    junk = [
+        folder / f".ckpt_000000064.safetensors.tmp{12345}",
+        folder / ".latest.json.tmp99",
+        run / ".config.json.tmp",
+        folder / "ckpt_000000112.state.pt",  # killed between the state and the weights
+        folder / "ckpt_000000128.safetensors",  # weights without their state
+    ]
+    for path in junk:
+        path.write_bytes(b"partial")
+    # a whole checkpoint newer than latest.json (killed before the pointer moved): never committed
+    for suffix in ("safetensors", "state.pt"):
+        shutil.copy(folder / f"ckpt_000000048.{suffix}", folder / f"ckpt_000000096.{suffix}")
+    assert len(leftovers(run)) == 5
+    rc, err = cli(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64")
+    assert rc == 0, err
+    assert leftovers(run) == [] and not any(p.exists() for p in junk)
+    assert [e for e, _ in checkpoints(run)][-3:] == [32, 48, 64]
+
+
+def test_clean_on_a_fresh_start_and_without_latest(tmp_path: Path) -> None:
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    for name in ("ckpt_000000016.safetensors", "ckpt_000000016.state.pt", ".latest.json.tmp3", "notes.txt"):
+        (folder / name).write_text("x")
+    assert sorted(clean(tmp_path)) == [".latest.json.tmp3", "ckpt_000000016.safetensors", "ckpt_000000016.state.pt"]
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"]  # only bitcomm's own names are touched
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs kill -9")
+def test_kill_9_then_resume_loses_at_most_one_interval(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "killed"
+    args = ["train", *QUICK, "--episodes", "320"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bitcomm.cli", *args, "--out", str(out)],
+        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    latest = out / "checkpoints" / "latest.json"
+    deadline = time.monotonic() + 90
+    while proc.poll() is None and time.monotonic() < deadline:
+        if latest.exists() and json.loads(latest.read_text())["episodes"] >= 48:
+            break
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    played = json.loads(latest.read_text())["episodes"]
+    assert 48 <= played < 320, "the run ended before it could be killed"
+    with (out / "metrics.csv").open() as f:
+        logged = sum(1 for _ in f) - 1
+    assert logged * 16 - played <= 16  # at most the one batch after the checkpoint is lost
+    rc, err = cli(capsys, *args, "--out", str(out), "--resume")
+    assert rc == 0, err
+    assert leftovers(out) == [] and json.loads(latest.read_text())["episodes"] == 320
+
+
+# ---------------------------------------------------------------------------------------------- retention
+def test_retention_keeps_the_last_n_and_the_best(tmp_path: Path) -> None:
+    rolling = {16: 9.0, 32: 4.0, 48: 6.0, 64: 7.0, 80: 8.0}
+    for e, length in rolling.items():
+        w = {"policy": {"w": torch.full((2,), float(e))}}
+        save_checkpoint(tmp_path, {}, w, episodes=e, batches=e // 16, state={}, rolling_length=length, keep=2)
+    assert [e for e, _ in checkpoints(tmp_path)] == [32, 64, 80]
+    assert rolling_length(checkpoints(tmp_path)[0][1]) == 4.0
+    assert leftovers(tmp_path) == []
+
+
+def test_a_run_keeps_keep_checkpoints(tmp_path: Path, capsys) -> None:
+    import csv
+
+    out = tmp_path / "run"
+    rc, err = cli(capsys, "train", *QUICK, "--episodes", "80", "--keep-checkpoints", "2", "--out", str(out))
+    assert rc == 0, err
+    kept = checkpoints(out)
+    assert 2 <= len(kept) <= 3 and [e for e, _ in kept][-2:] == [64, 80]
+    with (out / "metrics.csv").open(newline="") as f:  # a checkpoint after every batch: the best is kept
+        best = min(float(r["charts/episode_length_rolling"]) for r in csv.DictReader(f))
+    assert min(rolling_length(f) for _, f in kept) == pytest.approx(best)
+
+
+def test_keep_checkpoints_is_checked(capsys, tmp_path: Path) -> None:
+    refused(capsys, "train", *QUICK, "--keep-checkpoints", "0", "--out", str(tmp_path / "x"), naming="keep-checkpoints")
