@@ -176,7 +176,9 @@ def read_latest(folder: Path) -> dict[str, Any]:
         raise _bad(latest, "no such file (not a bitcomm run)") from None
     except (OSError, ValueError) as err:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
         raise _bad(latest, f"unreadable ({type(err).__name__}: {err})") from None
-    name = pointer.get("checkpoint") if isinstance(pointer, dict) else None
+    if not isinstance(pointer, dict):
+        raise _bad(latest, f"not a JSON object ({type(pointer).__name__})")
+    name = pointer.get("checkpoint")
     match = NAME.fullmatch(name) if isinstance(name, str) else None
     if match is None or match.group(2) != "safetensors":
         raise _bad(latest, f"'checkpoint' must name a ckpt_<episodes>.safetensors file of its folder, not {name!r}")
@@ -237,7 +239,8 @@ def _remove(folder: Path, episodes: int) -> None:
 def clean(run: Path) -> list[str]:
     """Remove what a killed writer left in a run folder (call it holding the run's lock): temporary
     files, checkpoint files without their pair, and checkpoints newer than `latest.json` (never committed;
-    all of them when there is no `latest.json`). Returns the names removed."""
+    all of them when there is no `latest.json`). The files `latest.json` names are never removed (a
+    missing state is then refused on resume with one line). Returns the names removed."""
     removed = []
     folder = run / CHECKPOINTS
     for where in (run, folder):
@@ -249,7 +252,7 @@ def clean(run: Path) -> list[str]:
         return removed
     committed = read_latest(folder)["episodes"] if (folder / LATEST).is_file() else -1
     for episodes, kinds in _stems(folder).items():
-        if kinds != {"safetensors", "state.pt"} or episodes > committed:
+        if episodes != committed and (kinds != {"safetensors", "state.pt"} or episodes > committed):
             _remove(folder, episodes)
             removed += [f"ckpt_{episodes:09d}.{k}" for k in sorted(kinds)]
     return removed

@@ -74,6 +74,28 @@ def _message_bits(kind: str, logits: np.ndarray, bits: int, greedy: bool, rng: n
     return index_to_bits(index, bits)
 
 
+def check_card(path: str | Path, metadata: Any) -> None:
+    """One line unless `metadata` is a policy card this bitcomm reads: format, version, task and head."""
+
+    def bad(why: str) -> ConfigError:
+        return ConfigError(f"invalid onnx={str(path)!r}: {why}")
+
+    if not isinstance(metadata, dict) or metadata.get("format") != FORMAT:
+        raise bad("no bitcomm policy card in it (made by bitcomm export?)")
+    version = metadata.get("version")
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise bad(f"its card's version {version!r} is not a whole number")
+    if version > VERSION:
+        raise bad(f"format version {version} is newer than this bitcomm reads ({VERSION})")
+    if metadata.get("messages") not in ("bitwise", "onehot"):
+        raise bad(f"its card's messages {metadata.get('messages')!r} is not bitwise or onehot")
+    try:
+        TaskConfig.from_dict(metadata["task"])
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        why = "no task" if isinstance(err, KeyError) and err.args == ("task",) else f"{type(err).__name__}: {err}"
+        raise bad(f"its card does not describe the task it plays ({why})") from None
+
+
 class OnnxController:
     """An exported policy network in an onnxruntime session, acting for any agent of its task."""
 
@@ -102,12 +124,7 @@ class OnnxController:
             metadata = json.loads(card) if card else {}
         except ValueError:
             metadata = {}
-        if metadata.get("format") != FORMAT:
-            raise ConfigError(f"invalid onnx={str(path)!r}: no bitcomm policy card in it (made by bitcomm export?)")
-        if int(metadata.get("version", -1)) > VERSION:
-            raise ConfigError(
-                f"invalid onnx={str(path)!r}: format version {metadata['version']} is newer than this bitcomm reads"
-            )
+        check_card(path, metadata)
         names = tuple(i.name for i in session.get_inputs()), tuple(o.name for o in session.get_outputs())
         if names != (INPUTS, OUTPUTS):
             raise ConfigError(f"invalid onnx={str(path)!r}: tensors {names} are not {(INPUTS, OUTPUTS)}")

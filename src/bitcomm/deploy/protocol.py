@@ -8,6 +8,7 @@ tell stale, duplicate and missing messages apart. A datagram from another run (r
 
 Control, world to agent and back: one JSON object per line over a TCP connection on loopback
 (`LineSocket`). Messages: hello, config, ready, step, move, stop, stats (see `world.py`/`agent.py`).
+A line that is not a JSON object raises `Malformed`; the world ignores and counts such lines.
 """
 
 from __future__ import annotations
@@ -65,6 +66,10 @@ class PeerGone(ConnectionError):
     """The other end closed the connection (it ended or died)."""
 
 
+class Malformed(ValueError):
+    """A control line that is not a JSON object: the connection goes on, the line is dropped."""
+
+
 class LineSocket:
     """JSON lines over a connected TCP socket, with deadlines (absolute `time.monotonic()` seconds)."""
 
@@ -85,7 +90,8 @@ class LineSocket:
             self.sock.setblocking(False)
 
     def recv(self, deadline: float) -> dict[str, Any]:
-        """The next line as an object; `TimeoutError` at the deadline, `PeerGone` at end of stream."""
+        """The next line as an object; `TimeoutError` at the deadline, `PeerGone` at end of stream,
+        `Malformed` (the line consumed) when it is not a JSON object."""
         while b"\n" not in self._buffer:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -103,7 +109,13 @@ class LineSocket:
                 raise PeerGone("connection closed")
             self._buffer += chunk
         line, self._buffer = self._buffer.split(b"\n", 1)
-        return json.loads(line)  # type: ignore[no-any-return]
+        try:
+            obj = json.loads(line)
+        except ValueError as err:  # not UTF-8 or not JSON
+            raise Malformed(f"not JSON ({err})") from None
+        if not isinstance(obj, dict):
+            raise Malformed(f"not a JSON object: {line[:40]!r}")
+        return obj
 
     def close(self) -> None:
         self.sock.close()

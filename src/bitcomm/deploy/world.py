@@ -11,7 +11,9 @@ the deployed policy and the simulated one face the same episode set. Actuation n
 
 Every process ends when the run ends or when any of them dies: agents exit when the world's
 connection closes; the world stops and kills the agents when one of them closes its connection,
-exits or stays silent past the step timeout; everything is bounded by `timeout_s`.
+exits or stays silent past the step timeout; everything is bounded by `timeout_s`. A control line that
+is malformed (not JSON, not an object, a hello without the run's token, a reply of the wrong type or
+with wrong fields) is ignored and counted (`DeployResult.network["control_malformed"]`), never fatal.
 """
 
 from __future__ import annotations
@@ -25,12 +27,12 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import IO, Any
+from typing import IO, Any, TypeGuard
 
 import numpy as np
 
 from bitcomm.config import TaskConfig
-from bitcomm.deploy.protocol import LineSocket, PeerGone, encode_array
+from bitcomm.deploy.protocol import LineSocket, Malformed, PeerGone, encode_array
 from bitcomm.envs.core import N_MOVES, GoalExchangeCore
 from bitcomm.evaluation import EvalResult, seeded_episode_envs
 from bitcomm.policy_source import PolicySource
@@ -53,7 +55,8 @@ class EpisodeOutcome:
 class DeployResult:
     outcomes: list[EpisodeOutcome]
     network: dict[str, int] = field(default_factory=dict)
-    """Datagram counts summed over agents: sent, dropped (on purpose), received, missing (at the deadline), late."""
+    """Datagram counts summed over agents: sent, dropped (on purpose), received, missing (at the deadline), late;
+    and `control_malformed`, the control lines the world ignored."""
     startup_s: float = 0.0
     wall_s: float = 0.0
 
@@ -78,6 +81,10 @@ def place_episode(core: GoalExchangeCore, start: np.ndarray, goal: np.ndarray) -
     core.begin(np.zeros(1, dtype=np.int64), start[None], goal[None])
 
 
+Fits = Callable[[dict[str, Any]], bool]
+"""What a control reply must satisfy besides its type."""
+
+
 class _Agents:
     """The agent processes and their control connections; `close` always leaves none running."""
 
@@ -97,6 +104,8 @@ class _Agents:
             )
         self.conns: list[LineSocket | None] = [None] * n
         self.udp_ports = [0] * n
+        self.malformed = 0
+        """Control lines ignored: not JSON objects, hellos that are not our agents', replies that do not fit."""
 
     def log_tail(self, i: int) -> str:
         self.logs[i].seek(0)
@@ -129,14 +138,17 @@ class _Agents:
             conn = LineSocket(sock)
             try:
                 hello = conn.recv(self.deadline(10.0))
-            except (TimeoutError, PeerGone, ValueError):
+            except (TimeoutError, PeerGone):
                 conn.close()
                 continue
-            i = hello.get("agent")
-            if hello.get("token") != self.token or not isinstance(i, int) or not 0 <= i < self.n or self.conns[i]:
+            except Malformed:
+                hello = {}
+            i, port = hello.get("agent"), hello.get("udp_port")
+            if hello.get("token") == self.token and _index(i, self.n) and _index(port, 65536) and not self.conns[i]:
+                self.conns[i], self.udp_ports[i] = conn, port
+            else:
+                self.malformed += 1
                 conn.close()  # not one of ours
-                continue
-            self.conns[i], self.udp_ports[i] = conn, int(hello["udp_port"])
 
     def send(self, i: int, obj: dict[str, Any]) -> None:
         try:
@@ -145,20 +157,26 @@ class _Agents:
             self.check_alive()
             raise DeployError(f"agent {i} closed its connection") from None
 
-    def recv(self, i: int, within: float, kind: str) -> dict[str, Any]:
-        """The next line from agent i, which must be of type `kind`."""
-        try:
-            msg = self._conn(i).recv(self.deadline(within))
-        except PeerGone:
-            time.sleep(0.05)  # let a dying process be reaped, to report its status
-            self.check_alive()
-            raise DeployError(f"agent {i} closed its connection") from None
-        except TimeoutError:
-            self.check_alive()
-            raise DeployError(f"agent {i} did not answer within {within:g} s") from None
-        if msg.get("type") != kind:
-            raise DeployError(f"agent {i} sent {msg.get('type')!r} where {kind!r} was expected")
-        return msg
+    def recv(self, i: int, within: float, kind: str, fits: Fits | None = None) -> dict[str, Any]:
+        """The next line from agent i of type `kind` (and that `fits`); other lines are ignored and counted."""
+        deadline = self.deadline(within)
+        while True:
+            try:
+                msg = self._conn(i).recv(deadline)
+            except Malformed:
+                self.malformed += 1
+                continue
+            except PeerGone:
+                time.sleep(0.05)  # let a dying process be reaped, to report its status
+                self.check_alive()
+                raise DeployError(f"agent {i} closed its connection") from None
+            except TimeoutError:
+                self.check_alive()
+                ignored = f" ({self.malformed} malformed control lines ignored)" if self.malformed else ""
+                raise DeployError(f"agent {i} did not answer within {within:g} s{ignored}") from None
+            if msg.get("type") == kind and (fits is None or fits(msg)):
+                return msg
+            self.malformed += 1
 
     def _conn(self, i: int) -> LineSocket:
         conn = self.conns[i]
@@ -178,6 +196,21 @@ class _Agents:
                 proc.wait()
         for log in self.logs:
             log.close()
+
+
+def _index(value: object, n: int) -> TypeGuard[int]:
+    """An int (not a bool) in 0..n-1."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < n
+
+
+def _move_of(episode: int, t: int) -> Fits:
+    """A move reply for this episode and step, with a move in 0..N_MOVES-1."""
+    return lambda m: m.get("episode") == episode and m.get("t") == t and _index(m.get("move"), N_MOVES)
+
+
+def _counts(msg: dict[str, Any]) -> bool:
+    """A stats reply: every count a non-negative int."""
+    return all(_index(v, 1 << 62) for k, v in msg.items() if k not in ("type", "agent"))
 
 
 def run_deploy(
@@ -226,14 +259,9 @@ def run_deploy(
                 for i in range(n):
                     agents.send(i, {"type": "step", "episode": e, "t": t, "planes": encode_array(core.obs[0, i])})
                 moves = np.zeros((1, n), dtype=np.int64)
+                fits = _move_of(e, t)
                 for i in range(n):
-                    reply = agents.recv(i, step_timeout_s, "move")
-                    move = reply.get("move")
-                    if reply.get("episode") != e or reply.get("t") != t or not isinstance(move, int):
-                        raise DeployError(f"agent {i} answered {reply} at episode {e}, step {t}")
-                    if not 0 <= move < N_MOVES:
-                        raise DeployError(f"agent {i} chose move {move}, outside 0..{N_MOVES - 1}")
-                    moves[0, i] = move
+                    moves[0, i] = agents.recv(i, step_timeout_s, "move", fits)["move"]
                 fin = core.step(moves).finished
                 if fin.env_index.size:
                     outcome = EpisodeOutcome(
@@ -248,10 +276,11 @@ def run_deploy(
         for i in range(n):
             agents.send(i, {"type": "stop"})
         for i in range(n):
-            stats = agents.recv(i, 10.0, "stats")
+            stats = agents.recv(i, 10.0, "stats", _counts)
             for key, value in stats.items():
                 if key not in ("type", "agent"):
                     network[key] = network.get(key, 0) + int(value)
+        network["control_malformed"] = agents.malformed
         return DeployResult(outcomes, network, startup, time.monotonic() - began)
     finally:
         agents.close()
