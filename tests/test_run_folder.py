@@ -318,3 +318,25 @@ def test_a_run_keeps_keep_checkpoints(tmp_path: Path, capsys) -> None:
 
 def test_keep_checkpoints_is_checked(capsys, tmp_path: Path) -> None:
     refused(capsys, "train", *QUICK, "--keep-checkpoints", "0", "--out", str(tmp_path / "x"), naming="keep-checkpoints")
+
+
+# ---------------------------------------------------------------------------------------------- compare
+def test_compare_runs_hold_the_lock_and_refuse_a_tampered_latest(run: Path, tmp_path: Path) -> None:
+    from bitcomm.compare import CHOICES, Configuration, Run, execute, run_status
+
+    study_run = Run(Configuration(CHOICES[0]), 0, tiny_config(), run)
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(run)], stdout=subprocess.PIPE, text=True, env=ENV)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        with pytest.raises(ConfigError, match=f"pid {holder.pid}"):
+            execute(study_run, 10, 0)
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert not (run / "evaluation.json").exists()
+    (run / "checkpoints" / "latest.json").write_text('{"checkpoint": 5}')
+    with pytest.raises(ConfigError, match="latest.json"):
+        run_status(study_run)
+    (run / "config.json").write_text("[1]")
+    with pytest.raises(ConfigError, match="config.json"):
+        run_status(study_run)

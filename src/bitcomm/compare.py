@@ -64,7 +64,7 @@ GRID_POINTS = 200
 CSV_POINTS = 1000
 """At most this many rows of each run's curve go to curves.csv (evenly spaced, always the last)."""
 EVALUATION = "evaluation.json"
-RESUMABLE = ("episodes", "checkpoint_seconds")
+RESUMABLE = ("episodes", "checkpoint_seconds", "keep_checkpoints")
 """Config fields a finished or partial run may differ in from the study and still count as its run."""
 STUDY_EPISODES = 40_000
 """The default budget of every run: on the default task, improved + bitwise under `fast` reaches 1.15x
@@ -233,7 +233,21 @@ def plan(cfg: CompareConfig) -> list[Run]:
 
 # ---------------------------------------------------------------------------------------------- runs
 def _json(path: Path) -> dict[str, Any]:
-    return dict(json.loads(path.read_text()))
+    """A JSON object from a file of a run folder, or one line naming the file."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"invalid file={str(path)!r}: unreadable ({type(err).__name__}: {err})") from None
+    if not isinstance(record, dict):
+        raise ConfigError(f"invalid file={str(path)!r}: not a JSON object")
+    return record
+
+
+def _latest(folder: Path) -> dict[str, Any]:
+    """The run's checked `latest.json` (it names a checkpoint of its own folder)."""
+    from bitcomm.checkpoint import CHECKPOINTS, read_latest
+
+    return read_latest(folder / CHECKPOINTS)
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -254,7 +268,7 @@ def run_status(run: Run) -> str:
     differs = [k for k in wanted if k not in RESUMABLE and recorded.get(k) != wanted[k]]
     if differs:
         raise bad_value("out", str(run.folder), f"it holds a run with other {', '.join(differs)}; use another --out")
-    played, budget = _json(latest)["episodes"], run.train.episodes
+    played, budget = _latest(run.folder)["episodes"], run.train.episodes
     if played < budget:
         return "resume"
     if recorded["episodes"] != budget:
@@ -287,16 +301,15 @@ def read_evaluation(run: Run, episodes: int, seed: int) -> dict[str, Any] | None
         return None
     record = _json(path)
     same = (record.get("checkpoint"), record.get("episodes"), record.get("seed"))
-    return record if same == (_json(latest)["checkpoint"], episodes, seed) else None
+    return record if same == (_latest(run.folder)["checkpoint"], episodes, seed) else None
 
 
 def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
     """Sampled and greedy play of the latest checkpoint on its own task, written to evaluation.json."""
-    from bitcomm.checkpoint import CHECKPOINTS, LATEST
     from bitcomm.evaluation import evaluate_checkpoint
 
     record = {
-        "checkpoint": _json(run.folder / CHECKPOINTS / LATEST)["checkpoint"],
+        "checkpoint": _latest(run.folder)["checkpoint"],
         "episodes": episodes,
         "seed": seed,
         **{
@@ -315,14 +328,21 @@ def _init_worker() -> None:
 
 
 def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
-    """Train (or resume) one run to its budget and evaluate it; returns the status it was found in."""
+    """Train (or resume) one run to its budget and evaluate it, holding the run folder's lock (one writer
+    at a time, see `bitcomm.run_lock`); returns the status it was found in."""
+    from bitcomm.run_lock import run_lock
     from bitcomm.train.run import train
 
-    status = run_status(run)
-    if status != "done":
-        train(run.train, run.folder, resume=status == "resume", progress=False)
-    if read_evaluation(run, eval_episodes, eval_seed) is None:
-        evaluate_run(run, eval_episodes, eval_seed)
+    try:
+        run.folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise bad_value("out", str(run.folder), f"cannot create the run folder ({err.strerror or err})") from None
+    with run_lock(run.folder):
+        status = run_status(run)
+        if status != "done":
+            train(run.train, run.folder, resume=status == "resume", progress=False)
+        if read_evaluation(run, eval_episodes, eval_seed) is None:
+            evaluate_run(run, eval_episodes, eval_seed)
     return status
 
 
