@@ -29,6 +29,8 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from bitcomm.train.recipes import DEFAULT_RECIPE
+
 RUNGS = (("2x", 2.0), ("1.15x", 1.15))
 GREEDY_RUNG = ("greedy 1.05x", 1.05)
 EVAL_SEED = 12345
@@ -128,7 +130,7 @@ def main() -> None:
     from bitcomm.train.config import make_train_config
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--recipe", default="fast")
+    ap.add_argument("--recipe", default=DEFAULT_RECIPE)
     ap.add_argument("--estimator", default="improved")
     ap.add_argument("--messages", default="bitwise")
     ap.add_argument("--size", type=int, default=10)

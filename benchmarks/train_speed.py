@@ -8,13 +8,13 @@ busy, 2 threads can be many times slower than 1 (the threads wait on each other)
 The last line printed is one JSON object.
 
 `passes` is how many forward and backward passes each agent-step goes through (the recipe's
-`epochs`): `fast` reuses each batch for 4 epochs of 4 minibatch steps. `--single-pass` also times
+`epochs`): `reinforced` reuses each batch for 4 epochs of 4 minibatch steps. `--single-pass` also times
 each multi-pass recipe with `epochs=1, minibatches=1` (one gradient step per batch, the plain batched
 actor-critic), so the trainer's own cost and the recipe's reuse can be told apart in one run.
 `--num-envs N` sets every recipe's episodes per batch: `--recipes paper --num-envs 64` is the paper's
-network and update over the batches `fast` uses.
+network and update over the batches `reinforced` uses.
 
-    python benchmarks/train_speed.py [--modes sync,a3c] [--recipes paper,fast] [--batches 3] [--single-pass]
+    python benchmarks/train_speed.py [--modes sync,a3c] [--recipes paper,reinforced] [--batches 3] [--single-pass]
         [--num-envs N]
 """
 
@@ -85,7 +85,7 @@ def measure(
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--modes", default="sync,a3c")
-    ap.add_argument("--recipes", default="fast,paper")
+    ap.add_argument("--recipes", default="reinforced,paper")
     ap.add_argument("--batches", type=int, default=3, help="timed batches per worker (x10 for one-episode batches)")
     ap.add_argument("--warmup", type=int, default=1, help="untimed batches per worker (x5 for one-episode batches)")
     ap.add_argument("--workers", type=int, default=2, help="a3c workers")

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = "--modes sync --recipes fast --batches 1 --warmup 1 --num-envs 8 --threads 1 --single-pass"
+TINY = "--modes sync --recipes reinforced --batches 1 --warmup 1 --num-envs 8 --threads 1 --single-pass"
 
 
 def test_train_speed_times_the_default_recipe_and_its_single_pass_variant_and_ends_with_json() -> None:
@@ -25,6 +25,6 @@ def test_train_speed_times_the_default_recipe_and_its_single_pass_variant_and_en
     summary = json.loads(out.stdout.strip().splitlines()[-1])
     results = summary["results"]
     passes = {name: (r["passes"], r["gradient_steps_per_batch"]) for name, r in results.items()}
-    assert passes == {"sync/fast": (4, 16), "sync/fast/single-pass": (1, 1)}
+    assert passes == {"sync/reinforced": (4, 16), "sync/reinforced/single-pass": (1, 1)}
     for r in results.values():
         assert r["num_envs"] == 8 and r["batches"] == 1 and r["agent_steps"] > 0 and r["agent_steps_per_s"] > 0

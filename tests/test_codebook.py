@@ -64,10 +64,10 @@ def test_message_map_starts_uniform_and_decodes_to_a_one_hot_plane():
     assert torch.allclose(centre[:, 2, 0], torch.linspace(-1, 1, 4)[decoded // 4])
 
 
-def test_fast_update_teaches_codes_and_trains_the_decoder_faster():
+def test_supervised_update_teaches_codes_and_trains_the_decoder_faster():
     task = TaskConfig(EnvConfig(size=3, max_steps=8), ChannelConfig(bits=4))
     torch.manual_seed(0)
-    learner = Learner(make_train_config("fast", task, num_envs=16))
+    learner = Learner(make_train_config("supervised", task, num_envs=16))
     assert [g["lr"] for g in learner.opt_policy.param_groups] == [1e-3, 1e-2]
     rollout = Collector(task, 16).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     stats = learner.update(rollout, torch.Generator().manual_seed(0))

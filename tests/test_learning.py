@@ -24,7 +24,7 @@ EPISODES = 4096
 
 def trained(tmp_path: Path, drop_prob: float) -> EvalResult:
     task = TaskConfig(EnvConfig(size=3, max_steps=32), ChannelConfig(bits=4, drop_prob=drop_prob))
-    cfg = make_train_config("fast", task, episodes=EPISODES, seed=0, checkpoint_seconds=1e9)
+    cfg = make_train_config("reinforced", task, episodes=EPISODES, seed=0, checkpoint_seconds=1e9)
     run = tmp_path / f"drop{drop_prob}"
     threads = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -45,9 +45,9 @@ def test_flags_default_to_the_recipe_and_override_it() -> None:
     assert learning_overrides(parse()) == {}
     given = learning_overrides(parse("--num-envs", "16", "--lr", "3e-4", "--no-coords", "--adv-norm", "--mode", "a3c"))
     assert given == {"num_envs": 16, "lr": 3e-4, "coords": False, "adv_norm": True, "mode": "a3c"}
-    cfg = make_train_config("fast", **given)
+    cfg = make_train_config("reinforced", **given)
     assert (cfg.num_envs, cfg.lr, cfg.model.coords, cfg.mode) == (16, 3e-4, False, "a3c")
-    assert make_train_config("fast", **learning_overrides(parse())) == make_train_config("fast")
+    assert make_train_config("reinforced", **learning_overrides(parse())) == make_train_config("reinforced")
 
 
 def test_parse_one_value() -> None:
@@ -63,5 +63,5 @@ def test_a_config_built_in_python_names_a_wrongly_typed_or_out_of_range_value() 
     bad = {"epochs": 2.5, "num_envs": True, "train_max_steps": -1, "lr": "fast", "clip": float("nan"), "gamma": 1.5}
     for name, value in bad.items():
         with pytest.raises(ConfigError, match=f"{name.replace('_', '-')}={value!r}"):
-            make_train_config("fast", **{name: value})
-    assert make_train_config("fast", epochs=2, lr=1, gamma=1).lr == 1  # an int is a number
+            make_train_config("reinforced", **{name: value})
+    assert make_train_config("reinforced", epochs=2, lr=1, gamma=1).lr == 1  # an int is a number

@@ -99,7 +99,7 @@ def test_decoded_maps_enter_the_first_convolution_as_a_matrix_product_with_the_s
         torch.testing.assert_close(net._first_conv(seen, maps), want_out, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("recipe", ["paper", "fast"])
+@pytest.mark.parametrize("recipe", ["paper", "reinforced", "supervised"])
 @pytest.mark.parametrize("estimator", ["standard", "improved"])
 def test_one_update_runs_and_changes_the_policy(recipe, estimator):
     torch.manual_seed(0)
@@ -114,7 +114,7 @@ def test_one_update_runs_and_changes_the_policy(recipe, estimator):
 
 @pytest.mark.parametrize("anneal", [True, False])
 def test_anneal_lr_scales_every_learning_rate_by_the_budget_left(anneal):
-    cfg = make_train_config("fast", TINY, num_envs=4, mode="sync", anneal_lr=anneal)
+    cfg = make_train_config("reinforced", TINY, num_envs=4, mode="sync", anneal_lr=anneal)
     learner, collector = Learner(cfg), Collector(TINY, 4)
     rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     base = [cfg.lr, cfg.map_lr, cfg.critic_lr]  # policy, message-map decoder, critic
@@ -135,13 +135,13 @@ def test_rollout_holds_whole_first_episodes():
 
 
 def test_training_episodes_are_truncated_at_train_max_steps_but_the_task_is_not():
-    cfg = make_train_config("fast", TINY, num_envs=16, train_max_steps=3)
+    cfg = make_train_config("reinforced", TINY, num_envs=16, train_max_steps=3)
     assert cfg.training_task.env.max_steps == 3 and cfg.task.env.max_steps == 20
     ro = Collector(cfg.training_task, 16).collect(
         PolicyNet(TINY, cfg.model), np.random.SeedSequence(1), torch.Generator()
     )
     assert ro.length.max() <= 3 and ro.planes.shape[0] <= 3
-    assert make_train_config("fast", TINY, train_max_steps=0).training_task == TINY
+    assert make_train_config("reinforced", TINY, train_max_steps=0).training_task == TINY
 
 
 def test_uniform_move_pulls_a_move_the_policy_gave_up_back():
@@ -149,7 +149,7 @@ def test_uniform_move_pulls_a_move_the_policy_gave_up_back():
 
     def stay_probability_after_one_update(uniform_move: float) -> tuple[float, float]:
         torch.manual_seed(0)
-        cfg = make_train_config("fast", TINY, num_envs=8, uniform_move=uniform_move, lr=1e-2)
+        cfg = make_train_config("reinforced", TINY, num_envs=8, uniform_move=uniform_move, lr=1e-2)
         learner = Learner(cfg)
         with torch.no_grad():
             learner.policy.move_logits.bias[0] = -12.0  # "stay" all but dead
@@ -173,7 +173,7 @@ def test_uniform_move_pulls_a_move_the_policy_gave_up_back():
 def test_reused_clip_factors_make_the_same_step_in_one_backward_pass():
     """Each loss is clipped on its own; a later step of the batch reuses the factors in one backward."""
     torch.manual_seed(0)
-    learner = Learner(make_train_config("fast", TINY, num_envs=8))
+    learner = Learner(make_train_config("reinforced", TINY, num_envs=8))
     params = list(learner.policy.parameters())
     planes = torch.randint(0, 2, (6, 2, 4, 4))
     received = torch.randint(0, 2, (6, TINY.slots, 3), dtype=torch.uint8)

@@ -38,7 +38,9 @@ def tiny_config(**kw):
     from bitcomm.train.config import make_train_config
 
     task = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
-    return make_train_config("fast", task, **{"num_envs": 16, "episodes": BUDGET, "checkpoint_seconds": 0.0, **kw})
+    return make_train_config(
+        "reinforced", task, **{"num_envs": 16, "episodes": BUDGET, "checkpoint_seconds": 0.0, **kw}
+    )
 
 
 def rows(run: Path) -> list[dict[str, str]]:

@@ -40,7 +40,7 @@ TINY = TaskConfig(EnvConfig(size=3, max_steps=20), ChannelConfig(bits=2))
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("variance") / "run"
-    cfg = make_train_config("fast", TINY, num_envs=16, episodes=32, gamma=0.5, checkpoint_seconds=0)
+    cfg = make_train_config("reinforced", TINY, num_envs=16, episodes=32, gamma=0.5, checkpoint_seconds=0)
     train(cfg, out, progress=False)
     return out
 

@@ -42,6 +42,7 @@ from bitcomm.errors import ConfigError, bad_value, check_int
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policy_source import TASK_FLAGS
 from bitcomm.stats import mean_interval
+from bitcomm.train.recipes import DEFAULT_RECIPE
 
 if TYPE_CHECKING:
     from bitcomm.evaluation import EvalResult
@@ -135,7 +136,7 @@ class CompareConfig:
 
     out: Path = Path("runs/compare")
     techniques: tuple[str, ...] = CHOICES
-    recipe: str = "fast"
+    recipe: str = DEFAULT_RECIPE
     seeds: int = 5
     """Seeds 0 .. seeds-1 of every configuration."""
     episodes: int = STUDY_EPISODES

@@ -16,7 +16,10 @@ from torch import nn
 
 from bitcomm.config import TaskConfig
 from bitcomm.envs.core import N_MOVES
+from bitcomm.errors import bad_value, check_int
 from bitcomm.heads import MessageHead, make_head
+
+ENCODERS = ("conv", "marginals")
 
 
 @dataclass(frozen=True)
@@ -25,9 +28,17 @@ class ModelConfig:
 
     messages: str = "bitwise"
     """Message head: `bitwise` (K Bernoulli bits) or `onehot` (categorical over 2^K)."""
+    encoder: str = "conv"
+    """How the policy and the critic read observation planes: `conv`, a stack of convolutions (the paper's
+    Fig. 2); `marginals`, each plane's row sums and column sums (a one-hot plane's row and column, each as a
+    one-hot vector) straight into the fully connected layers, which loses nothing of a plane that marks one
+    cell and costs a fraction of a convolution on a CPU."""
     conv_channels: tuple[int, ...] = (8, 16)
-    """Channels of the 3x3 convolutions, each of stride 2: one-hot planes lose nothing to striding
-    (a kernel tells the offsets apart) and the updates stay cheap on a CPU."""
+    """Channels of the 3x3 convolutions (each of stride `conv_stride`), with `encoder` `conv`."""
+    conv_stride: int = 2
+    """Stride of every convolution: 2 keeps updates cheap on a CPU and one-hot planes lose nothing to it (a
+    kernel tells the offsets apart), but it halves the grid at each layer (10x10 -> 5x5 -> 3x3); 1 keeps the
+    grid's resolution at about four times the cost per layer."""
     message_hidden: int = 64
     """Width of the fully connected layer over the received message (and the critics' extra inputs)."""
     hidden: int = 128
@@ -44,17 +55,36 @@ class ModelConfig:
     """Also decode each received message into a map over the grid's cells (one linear layer; its most
     likely cell as a one-hot plane, with the softmax's gradient) stacked beside the observation planes:
     a message that names a cell then reaches the network the way a seen cell does, so moving toward it
-    is the same skill as moving toward anything the agent sees. The goal loss (`goal_coef`) trains the
-    decoder."""
+    is the same skill as moving toward anything the agent sees. The decoder learns from the policy
+    gradient through the map (and, in the `supervised` recipe, from the auxiliary goal loss)."""
+
+    def __post_init__(self) -> None:
+        if self.encoder not in ENCODERS:
+            raise bad_value("encoder", self.encoder, f"choose one of {', '.join(ENCODERS)}")
+        for name in ("conv_stride", "message_hidden", "hidden"):
+            check_int(name, getattr(self, name), 1)
+        channels = tuple(self.conv_channels)
+        if not channels or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in channels):
+            raise bad_value("conv_channels", self.conv_channels, "one or more integers >= 1")
 
 
-def _conv_stack(in_channels: int, channels: tuple[int, ...], size: int) -> tuple[nn.Sequential, int]:
+def _conv_stack(in_channels: int, cfg: ModelConfig, size: int) -> tuple[nn.Sequential, int]:
+    """The plane encoder and its output width: convolutions, or (`marginals`) row and column sums."""
+    if cfg.encoder == "marginals":
+        return nn.Sequential(Marginals()), in_channels * 2 * size
     layers: list[nn.Module] = []
-    c, s = in_channels, size
-    for out in channels:
-        layers += [nn.Conv2d(c, out, 3, stride=2, padding=1), nn.ReLU()]
-        c, s = out, (s - 1) // 2 + 1
+    c, s, stride = in_channels, size, cfg.conv_stride
+    for out in cfg.conv_channels:
+        layers += [nn.Conv2d(c, out, 3, stride=stride, padding=1), nn.ReLU()]
+        c, s = out, (s - 1) // stride + 1
     return nn.Sequential(*layers, nn.Flatten()), c * s * s
+
+
+class Marginals(nn.Module):
+    """`(N, P, S, S)` planes -> `(N, P * 2S)`: each plane's sums over columns (per row) and over rows."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([x.sum(3), x.sum(2)], 2).flatten(1)
 
 
 def _coord_planes(size: int) -> torch.Tensor:
@@ -74,7 +104,8 @@ class PolicyNet(nn.Module):
         size = task.env.size
         self.register_buffer("coords", _coord_planes(size), persistent=False)
         maps = task.slots if cfg.message_map else 0
-        self.conv, flat = _conv_stack(2 + 2 * cfg.coords + maps, cfg.conv_channels, size)
+        self.coord_planes = cfg.coords and cfg.encoder == "conv"  # a marginal of a coordinate plane is constant
+        self.conv, flat = _conv_stack(2 + 2 * self.coord_planes + maps, cfg, size)
         flat += 2 * (2 + maps) if cfg.plane_coords else 0
         self.message_map = nn.Linear(self.head.in_features, size * size) if cfg.message_map else None
         if self.message_map is not None:  # a uniform map until the decoder learns (TrainConfig.map_lr)
@@ -101,13 +132,14 @@ class PolicyNet(nn.Module):
         """`(N, 2, S, S)` planes (any dtype) -> `(N, flat)` features; the received message enters here
         only with `message_map`."""
         x = planes.float()
-        seen = torch.cat([x, self.coords.expand(x.shape[0], -1, -1, -1)], 1) if self.cfg.coords else x
+        seen = torch.cat([x, self.coords.expand(x.shape[0], -1, -1, -1)], 1) if self.coord_planes else x
         if self.message_map is None:
             features = self.conv(seen)
+        elif self.cfg.encoder == "marginals":
+            maps = self._decoded_maps(received_encoded, x.shape)
+            features = self.conv(torch.cat([seen, maps], 1))
         else:
-            soft = torch.softmax(self.map_logits(received_encoded), -1)  # (N, slots, S * S)
-            hard = nn.functional.one_hot(soft.argmax(-1), soft.shape[-1]).to(soft.dtype)
-            maps = (hard + soft - soft.detach()).view(x.shape[0], -1, *x.shape[2:])  # the decoded cell, one-hot
+            maps = self._decoded_maps(received_encoded, x.shape)
             features = self.conv[1:](self._first_conv(seen, maps))
         if not self.cfg.plane_coords:
             return features
@@ -116,6 +148,12 @@ class PolicyNet(nn.Module):
         mass = x.sum((2, 3)).clamp(min=1e-6)  # (N, planes)
         centre = torch.einsum("npij,cij->npc", x, self.coords) / mass[..., None]  # (N, planes, 2)
         return torch.cat([features, centre.flatten(1)], 1)
+
+    def _decoded_maps(self, received_encoded: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+        """`(N, slots, S, S)`: each received message's most likely cell, one-hot, with the softmax's gradient."""
+        soft = torch.softmax(self.map_logits(received_encoded), -1)  # (N, slots, S * S)
+        hard = nn.functional.one_hot(soft.argmax(-1), soft.shape[-1]).to(soft.dtype)
+        return (hard + soft - soft.detach()).view(shape[0], -1, *shape[2:])
 
     def _first_conv(self, seen: torch.Tensor, maps: torch.Tensor) -> torch.Tensor:
         """The first convolution over the input planes `[observed, maps, coords]`, with the decoded maps
@@ -186,7 +224,7 @@ class CriticNet(nn.Module):
         n, size = task.env.n_agents, task.env.size
         self.n_agents, self.with_message = n, with_message
         self.head = make_head(cfg.messages, task.channel.bits)
-        self.conv, flat = _conv_stack(2 * n, cfg.conv_channels, size)
+        self.conv, flat = _conv_stack(2 * n, cfg, size)
         extra = n + n * (N_MOVES + 1) + (task.slots * self.head.in_features if with_message else 0)
         self.extra_in = nn.Sequential(nn.Linear(extra, cfg.message_hidden), nn.ReLU())
         self.body = nn.Sequential(

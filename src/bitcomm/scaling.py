@@ -41,6 +41,7 @@ from bitcomm.rollout import Collector, Rollout
 from bitcomm.tables import write_rows_csv
 from bitcomm.train.config import TrainConfig, make_train_config
 from bitcomm.train.learner import Learner
+from bitcomm.train.recipes import DEFAULT_RECIPE
 
 DEFAULT_SIZES = (10, 16, 32, 64)
 FLOAT_BYTES = 4
@@ -63,7 +64,7 @@ class ScalingConfig:
     """What to measure; the update batch is small on purpose, so 64x64 one-hot stays cheap."""
 
     sizes: tuple[int, ...] = DEFAULT_SIZES
-    recipe: str = "fast"
+    recipe: str = DEFAULT_RECIPE
     """Networks and update of this recipe (`bitcomm.train.config.RECIPES`)."""
     estimator: str = "improved"
     batch_episodes: int = 8

@@ -17,6 +17,7 @@ from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
 from bitcomm.compare import CHOICES, STUDY_EPISODES, CompareConfig, parse_techniques, parse_vary, run_compare
 from bitcomm.errors import bad_value
+from bitcomm.train.recipes import DEFAULT_RECIPE, RECIPES
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -34,7 +35,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="A,B,...",
         help=f"a subset of {', '.join(CHOICES)} (default: all)",
     )
-    p.add_argument("--recipe", choices=("paper", "fast"), default="fast", help="learning options (default %(default)s)")
+    p.add_argument(
+        "--recipe", choices=tuple(RECIPES), default=DEFAULT_RECIPE, help="learning options (default %(default)s)"
+    )
     p.add_argument("--seeds", type=int, default=5, help="seeds 0..S-1 per configuration (default %(default)s)")
     p.add_argument("--episodes", type=int, default=STUDY_EPISODES, help="budget of every run (default %(default)s)")
     p.add_argument("--jobs", type=int, default=None, help="processes at once (default: the core count)")

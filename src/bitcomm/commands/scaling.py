@@ -8,8 +8,30 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from bitcomm.commands.flags import MAX_BATCH, MAX_REPEATS, MAX_TRAIN_EPISODES, SEED, integer, number, out_dir
+from bitcomm.train.recipes import DEFAULT_RECIPE, RECIPES
+
 if TYPE_CHECKING:
     from bitcomm.scaling import ScalingConfig
+
+
+MAX_SCALING_SIZE = 128
+"""Largest grid side measured: K = 14 bits, 16,384 one-hot outputs; a side of 1000 (K = 20) took hours."""
+MAX_BATCH_EPISODES = 4096
+MAX_BATCH_STEPS = 1024
+"""The timed batch: 4096 episodes of 1024 steps is already gigabytes on the largest grid."""
+
+
+def sizes(text: str) -> str:
+    """An argparse type: comma-separated grid sides in [2, MAX_SCALING_SIZE] (kept as text for ScalingConfig)."""
+    allowed = f"must be comma-separated grid sides, each an integer in [2, {MAX_SCALING_SIZE}]"
+    try:
+        values = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: {allowed}") from None
+    if not values or not all(2 <= v <= MAX_SCALING_SIZE for v in values):
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: {allowed}")
+    return text
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -23,29 +45,31 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "(torch profiler, CPU) and its time on a fixed small batch; optionally a training run per pair "
         "(--episodes). Writes scaling.csv, scaling.md and scaling.png/.svg.",
     )
-    p.add_argument("--sizes", default="10,16,32,64", help="grid sides (default %(default)s)")
     p.add_argument(
-        "--recipe", choices=("fast", "paper"), default="fast", help="networks and update (default %(default)s)"
+        "--sizes", type=sizes, default="10,16,32,64", help=f"grid sides, each in [2, {MAX_SCALING_SIZE}] (default %(default)s)"
+    )
+    p.add_argument(
+        "--recipe", choices=tuple(RECIPES), default=DEFAULT_RECIPE, help="networks and update (default %(default)s)"
     )
     p.add_argument("--estimator", choices=("improved", "standard"), default="improved", help="(default %(default)s)")
-    p.add_argument("--batch-episodes", type=int, default=8, help="episodes in the timed batch (default %(default)s)")
-    p.add_argument("--batch-steps", type=int, default=32, help="their truncation length (default %(default)s)")
-    p.add_argument("--repeats", type=int, default=5, help="timed updates, median taken (default %(default)s)")
+    p.add_argument("--batch-episodes", type=integer(1, MAX_BATCH_EPISODES), default=8, help="episodes in the timed batch (default %(default)s)")
+    p.add_argument("--batch-steps", type=integer(1, MAX_BATCH_STEPS), default=32, help="their truncation length (default %(default)s)")
+    p.add_argument("--repeats", type=integer(1, MAX_REPEATS), default=5, help="timed updates, median taken (default %(default)s)")
     p.add_argument(
         "--episodes",
-        type=int,
+        type=integer(0, MAX_TRAIN_EPISODES),
         default=0,
         help="training budget per size and head for learning curves; 0 skips training (default %(default)s)",
     )
-    p.add_argument("--num-envs", type=int, default=None, help="episodes per training batch (default: the recipe's)")
+    p.add_argument("--num-envs", type=integer(1, MAX_BATCH), default=None, help="episodes per training batch (default: the recipe's)")
     p.add_argument(
         "--max-memory-gb",
-        type=float,
+        type=number(0.0, 1e6, strict=True),
         default=8.0,
         help="train only pairs whose estimated training update fits (default %(default)s)",
     )
-    p.add_argument("--seed", type=int, default=0, help="(default %(default)s)")
-    p.add_argument("--out", default="scaling", help="folder for scaling.csv/.md/.png/.svg (default %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the networks, batch and runs (default %(default)s)")
+    p.add_argument("--out", type=out_dir, default="scaling", help="folder for scaling.csv/.md/.png/.svg (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
     p.set_defaults(run=run)
 

@@ -1,10 +1,9 @@
 """`TrainConfig`: everything a training run needs, with named recipes.
 
-A recipe is a named set of learning options. `paper` is the paper's own training, nothing added:
-asynchronous actor-critic, Monte Carlo returns over whole episodes, one gradient step per batch,
-an entropy bonus on both heads. `fast` (the default) adds options beyond the paper, each one a
-named field below, so that the four techniques can be compared under either recipe alike.
-Options that use privileged training-time information say so in their docstring.
+A recipe is a named set of learning options (`bitcomm.train.recipes`): `reinforced` (the default,
+messages learned by reinforcement alone), `supervised` (plus auxiliary losses that teach the sender
+a protocol) and `paper` (the paper's training as written). Options that use privileged
+training-time information, or hand a policy head a target other than the return, say so below.
 """
 
 from __future__ import annotations
@@ -18,6 +17,7 @@ from bitcomm.errors import bad_value, check_int, check_number, is_number
 from bitcomm.estimators import ESTIMATORS
 from bitcomm.heads import MESSAGE_HEADS
 from bitcomm.networks import ModelConfig
+from bitcomm.train.recipes import AUXILIARY, DEFAULT_RECIPE, RECIPES
 
 MODES = ("sync", "a3c")
 
@@ -26,7 +26,7 @@ MODES = ("sync", "a3c")
 class TrainConfig:
     task: TaskConfig = field(default_factory=TaskConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
-    recipe: str = "fast"
+    recipe: str = DEFAULT_RECIPE
     """The named recipe these options came from (for the record; the fields below are what counts)."""
     estimator: str = "improved"
     """`standard` (paper eq. 7) or `improved` (paper eq. 8)."""
@@ -63,22 +63,24 @@ class TrainConfig:
     adv_norm: bool = False
     """Divide the advantages of a batch by their standard deviation."""
     goal_coef: float = 0.0
-    """Privileged (training time only): weight of a loss that makes each agent's first hidden layer
-    predict its own goal (row and column) from what it observes and hears. Centralised training uses
-    the true goal as the label; acting never sees it. Its gradient reaches the sender through the
-    channel (see `channel_noise`), so the sender learns to say what lets the receiver name its goal."""
+    """Auxiliary, privileged (training time only; `supervised` recipe): weight of a loss that makes each agent's first
+    hidden layer predict its own goal (row and column) from what it observes and hears (with `message_map`: makes
+    the received message's decoded map name that goal). Centralised training uses the true goal as the label; acting
+    never sees it. Without `message_map` its gradient reaches the sender through the channel (see `channel_noise`),
+    so the sender learns to say what lets the receiver name its goal."""
     seen_coef: float = 0.0
-    """Weight of a loss that makes each agent's first hidden layer predict the goal it observes (its
-    own observation, so not privileged): the message head then has the goal at hand to tell."""
+    """Auxiliary (`supervised` recipe): weight of a loss that makes each agent's first hidden layer predict the goal it
+    observes (its own observation, so not privileged): the message head then has the goal at hand to tell."""
     channel_noise: float = 1.0
-    """How the goal-grounding loss reaches the sender: > 0, through a relaxed channel, the receiver
-    reading sigmoid(sender logit + channel_noise * N(0, 1)) (DIAL); 0, straight through the sampled
-    bits. Acting and the channel itself stay discrete either way."""
+    """How the goal-grounding loss reaches the sender: > 0, through a relaxed channel, the receiver reading
+    sigmoid(sender logit + channel_noise * N(0, 1)) (DIAL); 0, straight through the sampled bits. Acting and the
+    channel itself stay discrete either way. It acts only where that loss reaches the sender (`goal_coef` > 0
+    without `message_map`); elsewhere a value other than 1 is refused, as it would change nothing."""
     code_coef: float = 0.0
-    """Weight of a loss that trains each sender toward a code word of the goal it observes (its own
-    observation, so not privileged), the words matched to goals one to one by the sender's own running
-    preference (bitcomm.train.codebook): a code with no two goals on one message, which a relaxed
-    channel does not find (one goal per message where 2^bits >= size * size)."""
+    """Auxiliary (`supervised` recipe): weight of a loss that trains each sender toward a code word of the goal it
+    observes (its own observation, so not privileged), the words matched to goals one to one by the sender's own
+    running preference (bitcomm.train.codebook): a code with no two goals on one message, which a relaxed channel
+    does not find (one goal per message where 2^bits >= size * size)."""
     anneal_lr: bool = False
     """Decay every learning rate linearly to zero over the budget (`episodes`), as CleanRL's PPO does:
     the last updates are then too small to undo a converged policy (the late relapses of
@@ -118,8 +120,18 @@ class TrainConfig:
             "seen_coef",
             "code_coef",
             "channel_noise",
+            "checkpoint_seconds",
         ):
             check_number(name, getattr(self, name), 0.0)
+        if 0 < self.train_max_steps <= self.task.channel.delay:
+            raise bad_value("delay", self.task.channel.delay, f"must be < train_max_steps ({self.train_max_steps})")
+        relaxed = self.goal_coef > 0 and not self.model.message_map
+        if self.channel_noise != 1.0 and not relaxed:
+            raise bad_value(
+                "channel_noise",
+                self.channel_noise,
+                "acts only where the goal loss reaches the sender (goal-coef > 0 with --no-message-map); leave it at 1",
+            )
 
     @property
     def training_task(self) -> TaskConfig:
@@ -128,6 +140,12 @@ class TrainConfig:
         if limit == 0 or limit >= self.task.env.max_steps:
             return self.task
         return dataclasses.replace(self.task, env=dataclasses.replace(self.task.env, max_steps=limit))
+
+    @property
+    def pure(self) -> bool:
+        """Messages and moves learned by reinforcement alone: no auxiliary loss reaches a policy head
+        (SPEC section 7)."""
+        return all(getattr(self, name) == 0 for name in AUXILIARY)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -145,51 +163,10 @@ class TrainConfig:
         )
 
 
-RECIPES: dict[str, dict[str, Any]] = {
-    "paper": dict(
-        mode="a3c",
-        num_envs=1,
-        train_max_steps=0,
-        lr=1e-3,
-        gamma=0.95,
-        epochs=1,
-        minibatches=1,
-        clip=0.0,
-        adv_norm=False,
-        goal_coef=0.0,
-        seen_coef=0.0,
-        code_coef=0.0,
-        uniform_move=0.0,
-        coords=False,
-        plane_coords=False,
-        message_map=False,
-    ),
-    "fast": dict(
-        mode="sync",
-        num_envs=64,
-        train_max_steps=64,
-        lr=1e-3,
-        gamma=0.5,
-        epochs=4,
-        minibatches=4,
-        clip=0.2,
-        adv_norm=True,
-        goal_coef=1.0,
-        seen_coef=1.0,
-        code_coef=1.0,
-        channel_noise=1.0,
-        uniform_move=0.01,
-        coords=True,
-        plane_coords=True,
-        message_map=True,
-    ),
-}
-"""Each recipe's values for the learning options; any flag given explicitly overrides them."""
-
 MODEL_OPTIONS = {f.name for f in dataclasses.fields(ModelConfig)}
 
 
-def make_train_config(recipe: str = "fast", task: TaskConfig | None = None, **overrides: Any) -> TrainConfig:
+def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = None, **overrides: Any) -> TrainConfig:
     """A TrainConfig from a recipe plus explicit options (None means "the recipe's value")."""
     if recipe not in RECIPES:
         raise bad_value("recipe", recipe, f"choose one of {', '.join(RECIPES)}")

@@ -136,12 +136,7 @@ class Learner:
             for opt, bases in zip((self.opt_policy, self.opt_critic), self.base_lrs, strict=True):
                 for group, base in zip(opt.param_groups, bases, strict=True):
                     group["lr"] = base * max(0.0, 1.0 - progress)
-        it, ib = ro.valid.nonzero(as_tuple=True)
-        b_action, b_message = self.baselines(ro, it, ib)
-        batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
-        adv = self.estimator(batch, cfg.gamma, cfg.task.channel.delay)
-        if cfg.adv_norm:
-            adv = adv._replace(action=_scaled(adv.action, ro.valid), message=_scaled(adv.message, ro.valid))
+        adv = self.advantages(ro)
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
         clip_scales: list[float] | None = None  # measured on the update's first step, then reused
@@ -152,6 +147,17 @@ class Learner:
                 for k, v in step_stats.items():
                     stats.setdefault(k, []).append(v)
         return {k: float(np.mean(v)) for k, v in stats.items()}
+
+    def advantages(self, ro: Rollout) -> Advantages:
+        """The chosen estimator's advantages on the batch `ro`, with the critics' baselines (and normalised
+        with `adv_norm`): the only weights the policy-gradient term gives the two heads' scores."""
+        it, ib = ro.valid.nonzero(as_tuple=True)
+        b_action, b_message = self.baselines(ro, it, ib)
+        batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
+        adv = self.estimator(batch, self.cfg.gamma, self.cfg.task.channel.delay)
+        if self.cfg.adv_norm:
+            adv = adv._replace(action=_scaled(adv.action, ro.valid), message=_scaled(adv.message, ro.valid))
+        return adv
 
     def _forward(self, ro: Rollout, cols: torch.Tensor) -> _Forward:
         """The policy network over every valid step of the episodes in columns `cols`."""

@@ -1,0 +1,152 @@
+"""Which critic feeds which advantage (SPEC sections 3-4), and which gradients reach the policy heads (section 7).
+
+The estimators' formulas are checked in test_estimators.py on hand-built baselines; here the baselines
+come from the learner itself, through a probe critic whose value spells out what it was shown (the agent
+it judges, the actions it was given, the bits that agent received). So a learner that fed the message
+advantage the *sender's* V2 instead of the recipient's, or showed V1 another agent's messages or actions,
+produces baselines that differ from the ones the spec names, and these tests fail.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.envs.channel import bits_to_index
+from bitcomm.estimators import Advantages, EstimatorBatch, get_estimator
+from bitcomm.rollout import Collector, Rollout
+from bitcomm.train.config import make_train_config
+from bitcomm.train.learner import Learner
+
+BITS = 2
+TWO = TaskConfig(EnvConfig(size=4, max_steps=12), ChannelConfig(bits=BITS))
+# three agents in a ring, agent 0 sending to both others: a message with two recipients
+THREE = TaskConfig(
+    EnvConfig(size=4, n_agents=3, max_steps=12), ChannelConfig(bits=BITS, recipients=((1, 2), (2,), (0,)), delay=2)
+)
+
+
+class ProbeCritic(nn.Module):
+    """V = a number that encodes (judged agent, given agents' actions, received bits) one to one."""
+
+    def __init__(self, n: int, with_message: bool) -> None:
+        super().__init__()
+        self.n_agents, self.with_message = n, with_message
+        self.zero = nn.Parameter(torch.zeros(()))  # so the critic's optimizer and loss still work
+
+    def state_features(self, state: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(state.shape[0], 1)
+
+    def value(
+        self,
+        features: torch.Tensor,
+        viewpoint: torch.Tensor,
+        moves: torch.Tensor,
+        given: torch.Tensor,
+        received: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        return probe_value(viewpoint, moves, given, received if self.with_message else None) + self.zero
+
+
+def probe_value(
+    viewpoint: torch.Tensor, moves: torch.Tensor, given: torch.Tensor, received: torch.Tensor | None
+) -> torch.Tensor:
+    """Base-6 digits for the given actions (0: not given, 1..5: the move), then the received slots and the agent."""
+    n = moves.shape[-1]
+    digits = torch.where(given, moves + 1, 0)
+    code = (digits * 6 ** torch.arange(n)).sum(-1)
+    if received is not None:
+        heard = bits_to_index(received.long()).view(received.shape[0], -1)  # (N, slots)
+        code = code + 6**n * (heard * (1 << BITS) ** torch.arange(heard.shape[1])).sum(-1)
+    return (code * 8 + viewpoint).float()  # exact: well below 2^24
+
+
+def learner_with_probe(task: TaskConfig, estimator: str, seed: int = 0) -> tuple[Learner, Rollout]:
+    torch.manual_seed(seed)
+    cfg = make_train_config("reinforced", task, estimator=estimator, num_envs=6, adv_norm=False)
+    learner = Learner(cfg)
+    learner.critic = ProbeCritic(task.env.n_agents, with_message=estimator == "standard")
+    rollout = Collector(task, 6).collect(learner.policy, np.random.SeedSequence(seed), torch.Generator().manual_seed(1))
+    return learner, rollout
+
+
+def expected_advantages(learner: Learner, ro: Rollout, estimator: str) -> Advantages:
+    """The advantages SPEC section 4 names, with the probe's values computed here, step by step."""
+    task = learner.cfg.task
+    n, T, B = task.env.n_agents, *ro.valid.shape
+    recipients = task.recipient_lists
+    b_action, b_message = torch.zeros(T, B, n), torch.zeros(T, B, n)
+    for t, b in zip(*ro.valid.nonzero(as_tuple=True), strict=True):
+        moves = ro.moves[t, b][None]
+        for j in range(n):
+            others = torch.tensor([[k != j for k in range(n)]])
+            heard = ro.received[t, b, j][None] if estimator == "standard" else None  # j's own inbox
+            b_action[t, b, j] = probe_value(torch.tensor([j]), moves, others, heard)[0]
+            # the message j sent arrives with its recipients: their actions are not given
+            not_recipients = torch.tensor([[k not in recipients[j] for k in range(n)]])
+            b_message[t, b, j] = probe_value(torch.tensor([recipients[j][0]]), moves, not_recipients, None)[0]
+    batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
+    return get_estimator(estimator)(batch, learner.cfg.gamma, task.channel.delay)
+
+
+@pytest.mark.parametrize("task", [TWO, THREE], ids=["two agents", "three agents, two recipients"])
+@pytest.mark.parametrize("estimator", ["standard", "improved"])
+def test_each_advantage_comes_from_the_critic_query_the_spec_names(task: TaskConfig, estimator: str) -> None:
+    learner, ro = learner_with_probe(task, estimator)
+    got, want = learner.advantages(ro), expected_advantages(learner, ro, estimator)
+    torch.testing.assert_close(got.returns, want.returns)
+    torch.testing.assert_close(got.action, want.action, rtol=0, atol=1e-3)
+    torch.testing.assert_close(got.message, want.message, rtol=0, atol=1e-3)
+
+
+def test_the_probe_tells_the_wrong_wirings_apart() -> None:
+    """The two mistakes the tests above must catch change the baselines on this batch."""
+    learner, ro = learner_with_probe(TWO, "improved")
+    want = expected_advantages(learner, ro, "improved")
+    it, ib = ro.valid.nonzero(as_tuple=True)
+    b_action, _ = learner.baselines(ro, it, ib)
+    # (a) the improved message advantage taking the sender's own V2 instead of the recipient's
+    own = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_action, ro.dropped)
+    wrong = get_estimator("improved")(own, learner.cfg.gamma, TWO.channel.delay)
+    assert not torch.allclose(wrong.message, want.message, atol=1e-3)
+    # (b) V1 reading the other agent's inbox, or the agent's own action
+    learner, ro = learner_with_probe(TWO, "standard")
+    state, moves, received = ro.state[it, ib], ro.moves[it, ib], ro.received[it, ib]
+    right = learner.critic_values(state, moves, received, *learner._action_queries())
+    swapped = learner.critic_values(state, moves, received.flip(1), *learner._action_queries())
+    own_action = learner.critic_values(state, moves, received, torch.arange(2), torch.ones(2, 2, dtype=torch.bool))
+    assert not torch.equal(right, swapped) and not torch.equal(right, own_action)
+
+
+# ------------------------------------------------------------------------------------------------ SPEC section 7
+def policy_gradients_after_one_step(recipe: str, zero_advantages: bool) -> dict[str, torch.Tensor]:
+    """The policy's gradient of one update step, with every entropy-type weight at zero."""
+    torch.manual_seed(0)
+    cfg = make_train_config(recipe, TWO, num_envs=8, entropy_move=0.0, entropy_message=0.0, uniform_move=0.0)
+    learner = Learner(cfg)
+    ro = Collector(TWO, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    adv = learner.advantages(ro)
+    if zero_advantages:
+        adv = Advantages(torch.zeros_like(adv.action), torch.zeros_like(adv.message), adv.returns)
+    learner._step(ro, adv, torch.arange(8), None)
+    return {name: p.grad if p.grad is not None else torch.zeros_like(p) for name, p in learner.policy.named_parameters()}
+
+
+@pytest.mark.parametrize("recipe", ["reinforced", "paper"])
+def test_pure_recipes_give_the_policy_no_gradient_but_the_estimators(recipe: str) -> None:
+    silent = policy_gradients_after_one_step(recipe, zero_advantages=True)
+    assert all(torch.count_nonzero(g) == 0 for g in silent.values()), [n for n, g in silent.items() if g.any()]
+    moved = policy_gradients_after_one_step(recipe, zero_advantages=False)
+    for head in ("move_logits.weight", "message_logits.weight"):
+        assert moved[head].abs().sum() > 0, head
+    assert make_train_config(recipe).pure
+
+
+def test_the_supervised_recipe_reaches_the_message_head_without_advantages() -> None:
+    """The check above can fail: the auxiliary losses teach the sender with no advantage at all."""
+    grads = policy_gradients_after_one_step("supervised", zero_advantages=True)
+    assert grads["message_logits.weight"].abs().sum() > 0
+    assert not make_train_config("supervised").pure
