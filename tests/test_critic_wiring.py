@@ -132,7 +132,9 @@ def policy_gradients_after_one_step(recipe: str, zero_advantages: bool) -> dict[
     if zero_advantages:
         adv = Advantages(torch.zeros_like(adv.action), torch.zeros_like(adv.message), adv.returns)
     learner._step(ro, adv, torch.arange(8), None)
-    return {name: p.grad if p.grad is not None else torch.zeros_like(p) for name, p in learner.policy.named_parameters()}
+    return {
+        name: p.grad if p.grad is not None else torch.zeros_like(p) for name, p in learner.policy.named_parameters()
+    }
 
 
 @pytest.mark.parametrize("recipe", ["reinforced", "paper"])
