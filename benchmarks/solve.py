@@ -13,6 +13,7 @@ The last line printed is one JSON object.
 
     python benchmarks/solve.py --size 4 --bits 4 --minutes 5            # rung 1
     python benchmarks/solve.py --minutes 15                             # rung 2 (the paper's 10x10)
+    python benchmarks/solve.py --minutes 15 --threads 2 --jobs 1        # each seed alone on 2 cores
     python benchmarks/solve.py --minutes 45                             # rung 3
     python benchmarks/solve.py --recipe paper --minutes 15              # the paper's own recipe
     python benchmarks/solve.py --set gamma=0.8 --set lr=3e-4            # any learning option (bitcomm train --help)
@@ -113,6 +114,28 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
     }
 
 
+def over_seeds(results: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per rung: the median and the worst seed's training seconds and episodes (a seed that never reached
+    the rung is the worst, as None), with how many seeds reached it; and the final evaluations' median."""
+    import statistics
+
+    out: dict[str, dict[str, Any]] = {}
+    for name in (*(n for n, _ in RUNGS), GREEDY_RUNG[0]):
+        hits = [r["reached"][name] for r in results]
+        done = [h for h in hits if h is not None]
+        missing = len(hits) - len(done)
+        figures: dict[str, Any] = {"reached": f"{len(done)}/{len(hits)}"}
+        for key in ("wall_s", "episodes"):
+            values = sorted(h[key] for h in done) + [float("inf")] * missing
+            median = statistics.median(values)
+            figures[f"median_{key}"] = None if median == float("inf") else median
+            figures[f"worst_{key}"] = None if missing else values[-1]
+        out[name] = figures
+    for kind in ("sampled", "greedy"):
+        out[f"final {kind}"] = {"median": statistics.median(r["final_eval"][kind] for r in results)}
+    return out
+
+
 def _with_budget(cfg: Any, episodes: int) -> Any:
     from dataclasses import replace
 
@@ -202,7 +225,10 @@ def main() -> None:
         "threads": a.threads,
         "jobs": a.jobs,
         "seeds": [{k: v for k, v in r.items() if k != "checks"} for r in results],
+        "over_seeds": over_seeds(results),
     }
+    for name, figures in summary["over_seeds"].items():
+        print(f"{name}: " + ", ".join(f"{k} {v}" for k, v in figures.items()), flush=True)
     (out / "summary.json").write_text(json.dumps({**summary, "checks": [r["checks"] for r in results]}, indent=1))
     print(json.dumps(summary))
 

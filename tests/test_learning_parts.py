@@ -117,7 +117,8 @@ def test_anneal_lr_scales_every_learning_rate_by_the_budget_left(anneal):
     cfg = make_train_config("reinforced", TINY, num_envs=4, mode="sync", anneal_lr=anneal)
     learner, collector = Learner(cfg), Collector(TINY, 4)
     rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
-    base = [cfg.lr, cfg.map_lr, cfg.critic_lr]  # policy, message-map decoder, critic
+    decoder = [cfg.map_lr] if cfg.model.message_map else []
+    base = [cfg.lr, *decoder, cfg.critic_lr]  # policy, message-map decoder (if any), critic
     for progress in (0.25, 1.0):
         learner.update(rollout, torch.Generator().manual_seed(0), progress=progress)
         lrs = [g["lr"] for opt in (learner.opt_policy, learner.opt_critic) for g in opt.param_groups]

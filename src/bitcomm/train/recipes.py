@@ -25,26 +25,43 @@ DEFAULT_RECIPE = "reinforced"
 
 _REINFORCED: dict[str, Any] = dict(
     mode="sync",
-    num_envs=64,
-    train_max_steps=64,
-    lr=1e-3,
+    num_envs=128,
+    train_max_steps=32,
+    lr=3e-3,
     gamma=0.5,
     epochs=4,
     minibatches=4,
     clip=0.2,
     adv_norm=True,
+    entropy_message=0.01,
     goal_coef=0.0,
     seen_coef=0.0,
     code_coef=0.0,
     uniform_move=0.01,
-    coords=True,
+    encoder="marginals",
+    coords=False,
     plane_coords=True,
+    message_map=False,
+)
+
+_SUPERVISED: dict[str, Any] = dict(
+    _REINFORCED,
+    num_envs=64,
+    train_max_steps=64,
+    lr=1e-3,
+    entropy_message=0.001,
+    goal_coef=1.0,
+    seen_coef=1.0,
+    code_coef=1.0,
+    encoder="conv",
+    coords=True,
     message_map=True,
 )
+"""The former `fast` recipe, as measured in docs/tuning.md sessions 1-7."""
 
 RECIPES: dict[str, dict[str, Any]] = {
     "reinforced": _REINFORCED,
-    "supervised": {**_REINFORCED, "goal_coef": 1.0, "seen_coef": 1.0, "code_coef": 1.0},
+    "supervised": _SUPERVISED,
     "paper": dict(
         mode="a3c",
         num_envs=1,
@@ -59,6 +76,8 @@ RECIPES: dict[str, dict[str, Any]] = {
         seen_coef=0.0,
         code_coef=0.0,
         uniform_move=0.0,
+        entropy_message=0.001,
+        encoder="conv",
         coords=False,
         plane_coords=False,
         message_map=False,
