@@ -8,9 +8,10 @@ import argparse
 import importlib
 import pkgutil
 import sys
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import bitcomm.commands
+from bitcomm.commands.flags import HelpFormatter
 from bitcomm.errors import ConfigError
 
 
@@ -21,7 +22,11 @@ def command_names() -> list[str]:
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line (no usage dump), exit status 2."""
+    """argparse, but a usage error is one line (no usage dump), exit status 2, and help shows defaults."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message}\n")

@@ -14,10 +14,23 @@ import numpy as np
 
 from bitcomm.errors import bad_value
 
+MAX_SIZE = 1024
+"""Grid side cap: a 1024 x 1024 grid is 2 MB of planes per agent and episode; commands also check memory."""
+MAX_AGENTS = 64
+"""Agents cap: every agent's network sees 2n state planes and each step costs n forward passes."""
+MAX_STEPS = 100_000
+"""Episode length cap (`max_steps`): beyond it a random policy's evaluation would run for days."""
+
 
 def _check_probability(name: str, value: float) -> None:
     if not (isinstance(value, (int, float)) and 0.0 <= float(value) <= 1.0):
         raise bad_value(name, value, "must be a probability in [0, 1]")
+
+
+def _check_count(name: str, value: object, least: int, most: int, why: str) -> None:
+    """One error line unless `value` is an int in [least, most] (a bool is not); `why` explains the bounds."""
+    if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
+        raise bad_value(name, value, f"must be an integer in [{least}, {most}] ({why})")
 
 
 @dataclass(frozen=True)
@@ -38,15 +51,11 @@ class EnvConfig:
     """Actuation noise: moves take effect this many steps after they are chosen (stay before that)."""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.size, int) or self.size < 2:
-            raise bad_value("size", self.size, "the grid must be at least 2 cells a side")
-        if not isinstance(self.n_agents, int) or self.n_agents < 2:
-            raise bad_value("agents", self.n_agents, "at least 2 agents are needed")
-        if not isinstance(self.max_steps, int) or self.max_steps < 1:
-            raise bad_value("max_steps", self.max_steps, "must be an integer >= 1")
+        _check_count("size", self.size, 2, MAX_SIZE, "cells a side")
+        _check_count("agents", self.n_agents, 2, MAX_AGENTS, "at least 2 agents are needed")
+        _check_count("max_steps", self.max_steps, 1, MAX_STEPS, "steps before an episode is truncated")
         _check_probability("act_fail_prob", self.act_fail_prob)
-        if not isinstance(self.act_delay, int) or self.act_delay < 0:
-            raise bad_value("act_delay", self.act_delay, "must be an integer >= 0")
+        _check_count("act_delay", self.act_delay, 0, self.max_steps - 1, "a move must take effect within max_steps")
         if self.observes is not None:
             obs = tuple(self.observes)
             if len(obs) != self.n_agents:
@@ -90,10 +99,7 @@ class ChannelConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.bits, int) or not 1 <= self.bits <= 30:
             raise bad_value("bits", self.bits, "must be an integer in [1, 30]")
-        if not isinstance(self.delay, int) or self.delay < 1:
-            raise bad_value(
-                "delay", self.delay, "must be an integer >= 1 (a message arrives one step later at the earliest)"
-            )
+        _check_count("delay", self.delay, 1, MAX_STEPS, "a message arrives one step later at the earliest")
         _check_probability("flip_prob", self.flip_prob)
         _check_probability("drop_prob", self.drop_prob)
         if self.recipients is not None:
@@ -113,6 +119,12 @@ class TaskConfig:
     channel: ChannelConfig = field(default_factory=ChannelConfig)
 
     def __post_init__(self) -> None:
+        if self.channel.delay >= self.env.max_steps:
+            raise bad_value(
+                "delay",
+                self.channel.delay,
+                f"must be < max_steps ({self.env.max_steps}): a message must arrive within an episode",
+            )
         n = self.env.n_agents
         recipients = self.recipient_lists
         if len(recipients) != n:

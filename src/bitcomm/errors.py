@@ -1,5 +1,6 @@
 """One exception type for bad user input, so the CLI can print one line and exit 2."""
 
+import math
 import numbers
 
 
@@ -23,7 +24,11 @@ def is_number(value: object) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
-def check_number(name: str, value: object, least: float, strict: bool = False) -> None:
-    """One error line unless `value` is a number >= `least` (> with `strict`; NaN never is)."""
+def check_number(name: str, value: object, least: float, strict: bool = False, finite: bool = True) -> None:
+    """One error line unless `value` is a number >= `least` (> with `strict`; NaN never is), and finite
+    unless `finite` is False: an infinite rate or interval is never what a user meant."""
+    bound = f"{'>' if strict else '>='} {least:g}"
     if not (is_number(value) and (value > least if strict else value >= least)):  # type: ignore[operator]
-        raise bad_value(name.replace("_", "-"), value, f"must be {'>' if strict else '>='} {least:g}")
+        raise bad_value(name.replace("_", "-"), value, f"must be a {'finite ' if finite else ''}number {bound}")
+    if finite and not math.isfinite(value):  # type: ignore[arg-type]
+        raise bad_value(name.replace("_", "-"), value, f"must be a finite number {bound}")

@@ -7,9 +7,8 @@ import json
 import sys
 from pathlib import Path
 
-from bitcomm.analysis import analyze_samples, bit_maps, collect_messages, markdown_summary, save_heatmaps
 from bitcomm.commands.common import add_task_flags
-from bitcomm.errors import bad_value
+from bitcomm.commands.flags import MAX_BATCH, MAX_SAMPLES, SEED, check_play, integer, out_dir
 from bitcomm.policy_source import add_policy_flags, source_from_args
 
 
@@ -20,10 +19,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="Per-bit mutual information with the sender's observed goal, information transmitted "
         "through the channel against its capacity, a lookup decoder, heatmaps (PNG) and a Markdown summary.",
     )
-    p.add_argument("--out", default="analysis", help="folder for bits.png and summary.md (default %(default)s)")
-    p.add_argument("--samples", type=int, default=200_000, help="deliveries to collect (default %(default)s)")
-    p.add_argument("--envs", type=int, default=1024, help="episodes played side by side (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed of play and of the decoder's split (default %(default)s)")
+    p.add_argument(
+        "--out", type=out_dir, default="analysis", help="folder for bits.png and summary.md (default %(default)s)"
+    )
+    p.add_argument(
+        "--samples",
+        type=integer(100, MAX_SAMPLES, "minutes of play and a few hundred MB at the top"),
+        default=200_000,
+        help="deliveries to collect (default %(default)s)",
+    )
+    p.add_argument(
+        "--envs", type=integer(1, MAX_BATCH), default=1024, help="episodes played side by side (default %(default)s)"
+    )
+    p.add_argument("--seed", type=SEED, default=0, help="seed of play and of the decoder's split (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the summary figures as one JSON object")
     add_task_flags(p)
     add_policy_flags(p)
@@ -31,12 +39,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.samples < 100:
-        raise bad_value("samples", args.samples, "must be at least 100")
-    if args.envs < 1:
-        raise bad_value("envs", args.envs, "must be >= 1")
+    from bitcomm.analysis import analyze_samples, bit_maps, collect_messages, markdown_summary, save_heatmaps
+
     source = source_from_args(args)
     task = source.task_from_args(args)
+    check_play(task, "envs", args.envs, args.envs)
     samples = collect_messages(source.build(task, seed=args.seed), task, args.samples, args.envs, args.seed)
     report = analyze_samples(samples, task, source.label, args.seed)
     out = Path(args.out)

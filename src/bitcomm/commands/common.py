@@ -5,17 +5,22 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING
 
-from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.errors import bad_value
-from bitcomm.evaluation import EvalResult
+from bitcomm.commands.flags import integer, number
+from bitcomm.config import MAX_AGENTS, MAX_SIZE, MAX_STEPS, ChannelConfig, EnvConfig, TaskConfig
+
+if TYPE_CHECKING:
+    from bitcomm.evaluation import EvalResult
+
+PROBABILITY = number(0.0, 1.0)
 
 
 def _int_list(text: str) -> tuple[int, ...]:
     try:
         return tuple(int(x) for x in text.split(",") if x.strip() != "")
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated agent numbers, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: expected comma-separated agent numbers") from None
 
 
 def _groups(text: str) -> tuple[tuple[int, ...], ...]:
@@ -26,26 +31,38 @@ def add_task_flags(parser: argparse.ArgumentParser) -> None:
     """Every environment and channel parameter of SPEC sections 1 and 2, with its default."""
     env, ch = EnvConfig(), ChannelConfig()
     g = parser.add_argument_group("task (environment and channel)")
-    g.add_argument("--size", type=int, default=env.size, help="grid side (default %(default)s)")
-    g.add_argument("--agents", type=int, default=env.n_agents, help="number of agents (default %(default)s)")
-    g.add_argument("--max-steps", type=int, default=env.max_steps, help="truncation length (default %(default)s)")
+    g.add_argument("--size", type=integer(2, MAX_SIZE), default=env.size, help="grid side (default %(default)s)")
+    g.add_argument(
+        "--agents", type=integer(2, MAX_AGENTS), default=env.n_agents, help="number of agents (default %(default)s)"
+    )
+    g.add_argument(
+        "--max-steps", type=integer(1, MAX_STEPS), default=env.max_steps, help="truncation length (default %(default)s)"
+    )
     g.add_argument(
         "--observes", type=_int_list, default=None, help="whose goal each agent sees, e.g. 1,0 (default: ring)"
     )
-    g.add_argument("--bits", type=int, default=ch.bits, help="message bits K (default %(default)s)")
+    g.add_argument("--bits", type=integer(1, 30), default=ch.bits, help="message bits K (default %(default)s)")
     g.add_argument(
         "--recipients",
         type=_groups,
         default=None,
         help="who hears each agent, e.g. '1,2;0;0' (default: whose goal it sees)",
     )
-    g.add_argument("--delay", type=int, default=ch.delay, help="message delay in steps (default %(default)s)")
-    g.add_argument("--flip-prob", type=float, default=ch.flip_prob, help="bit flip probability (default %(default)s)")
     g.add_argument(
-        "--drop-prob", type=float, default=ch.drop_prob, help="message drop probability (default %(default)s)"
+        "--delay",
+        type=integer(1, MAX_STEPS),
+        default=ch.delay,
+        help="message delay in steps, less than --max-steps (default %(default)s)",
     )
-    g.add_argument("--act-fail-prob", type=float, default=env.act_fail_prob, help="actuation: move not executed")
-    g.add_argument("--act-delay", type=int, default=env.act_delay, help="actuation: steps before a move takes effect")
+    g.add_argument("--flip-prob", type=PROBABILITY, default=ch.flip_prob, help="bit flip probability")
+    g.add_argument("--drop-prob", type=PROBABILITY, default=ch.drop_prob, help="message drop probability")
+    g.add_argument("--act-fail-prob", type=PROBABILITY, default=env.act_fail_prob, help="actuation: move not executed")
+    g.add_argument(
+        "--act-delay",
+        type=integer(0, MAX_STEPS),
+        default=env.act_delay,
+        help="actuation: steps before a move takes effect, less than --max-steps",
+    )
 
 
 def task_from_args(args: argparse.Namespace) -> TaskConfig:
@@ -64,9 +81,10 @@ def task_from_args(args: argparse.Namespace) -> TaskConfig:
 
 
 def check_episodes(episodes: int) -> int:
-    if episodes < 1:
-        raise bad_value("episodes", episodes, "must be an integer >= 1")
-    return episodes
+    """Evaluation episodes (parsed by `flags.EVAL_EPISODES`; checked again for callers that build args)."""
+    from bitcomm.commands.flags import check_episodes as check
+
+    return check(episodes)
 
 
 def print_result(result: EvalResult, as_json: bool, title: str) -> None:

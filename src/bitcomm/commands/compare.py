@@ -14,10 +14,23 @@ import sys
 from pathlib import Path
 
 from bitcomm.commands.common import add_task_flags, task_from_args
+from bitcomm.commands.flags import (
+    EVAL_EPISODES,
+    MAX_JOBS,
+    MAX_TRAIN_EPISODES,
+    SEED,
+    check_eval,
+    check_train,
+    integer,
+    out_dir,
+)
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
 from bitcomm.compare import CHOICES, STUDY_EPISODES, CompareConfig, parse_techniques, parse_vary, run_compare
 from bitcomm.errors import bad_value
 from bitcomm.train.recipes import DEFAULT_RECIPE, RECIPES
+
+MAX_SEEDS = 1000
+"""Seeds per configuration: 1000 runs of each is already months of CPU (and keeps --eval-seed's default free)."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -38,14 +51,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--recipe", choices=tuple(RECIPES), default=DEFAULT_RECIPE, help="learning options (default %(default)s)"
     )
-    p.add_argument("--seeds", type=int, default=5, help="seeds 0..S-1 per configuration (default %(default)s)")
-    p.add_argument("--episodes", type=int, default=STUDY_EPISODES, help="budget of every run (default %(default)s)")
-    p.add_argument("--jobs", type=int, default=None, help="processes at once (default: the core count)")
-    p.add_argument("--out", type=Path, default=Path("runs/compare"), help="study folder (default %(default)s)")
-    p.add_argument("--eval-episodes", type=int, default=1000, help="evaluation episodes per run (default %(default)s)")
+    p.add_argument(
+        "--seeds", type=integer(1, MAX_SEEDS), default=5, help="seeds 0..S-1 per configuration (default %(default)s)"
+    )
+    p.add_argument(
+        "--episodes",
+        type=integer(1, MAX_TRAIN_EPISODES),
+        default=STUDY_EPISODES,
+        help="budget of every run (default %(default)s)",
+    )
+    p.add_argument(
+        "--jobs", type=integer(1, MAX_JOBS), default=None, help="processes at once (default: the core count)"
+    )
+    p.add_argument("--out", type=out_dir, default=Path("runs/compare"), help="study folder (default %(default)s)")
+    p.add_argument(
+        "--eval-episodes", type=EVAL_EPISODES, default=1000, help="evaluation episodes per run (default %(default)s)"
+    )
     p.add_argument(
         "--eval-seed",
-        type=int,
+        type=SEED,
         default=1000,
         help="seed of the evaluation episodes, not a training seed (default %(default)s)",
     )
@@ -61,6 +85,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_learning_flags(p)
     add_task_flags(p)
     p.set_defaults(run=run)
+
+
+def check_study(cfg: CompareConfig) -> None:
+    """Every run's config built (a bad learning option or varied value fails now) and its memory checked,
+    `jobs` of them at once, before the first run starts."""
+    from bitcomm.compare import plan
+
+    runs = plan(cfg)
+    for r in runs:
+        check_train(r.train, processes=min(cfg.jobs, len(runs)))
+        check_eval(r.train.task, cfg.eval_episodes)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
         learning=learning_overrides(args),
         vary=vary,
     )
+    check_study(cfg)
     progress = sys.stderr if args.json else sys.stdout
     summary = run_compare(cfg, log=lambda line: print(line, file=progress, flush=True))
     if args.json:

@@ -6,13 +6,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING
 
-from bitcomm.agent_policies import BatchedPolicy
-from bitcomm.commands.common import add_task_flags, check_episodes
-from bitcomm.deploy import DeployError, EpisodeOutcome, run_deploy
-from bitcomm.errors import bad_value
-from bitcomm.evaluation import EvalResult, evaluate
+from bitcomm.commands.common import add_task_flags
+from bitcomm.commands.flags import MAX_DEADLINE_MS, MAX_SECONDS, SEED, check_eval, integer, number
 from bitcomm.policy_source import add_policy_flags, source_from_args
+
+if TYPE_CHECKING:
+    from bitcomm.deploy import EpisodeOutcome
+    from bitcomm.evaluation import EvalResult
+
+MAX_DEPLOY_EPISODES = 100_000
+"""Each deployed episode is a few hundred UDP round trips: 10^5 episodes is already hours."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -23,10 +28,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--drop-prob and --flip-prob act on the wire (seeded, by the sender); a message missing at its deadline "
         "reads as zeros. The summary compares with the same policy on the same episodes in the vectorized simulator.",
     )
-    p.add_argument("--episodes", type=int, default=100, help="episodes to play (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the episode set and the noise (default %(default)s)")
-    p.add_argument("--deadline-ms", type=float, default=20.0, help="wait for a step's messages (default %(default)s)")
-    p.add_argument("--timeout", type=float, default=300.0, help="bound on the whole run, seconds (default %(default)s)")
+    p.add_argument(
+        "--episodes",
+        type=integer(1, MAX_DEPLOY_EPISODES, "hours of UDP round trips at the top"),
+        default=100,
+        help="episodes to play (default %(default)s)",
+    )
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the episode set and the noise (default %(default)s)")
+    p.add_argument(
+        "--deadline-ms",
+        type=number(0.0, MAX_DEADLINE_MS, strict=True),
+        default=20.0,
+        help="wait for a step's messages (default %(default)s)",
+    )
+    p.add_argument(
+        "--timeout",
+        type=number(0.0, MAX_SECONDS, strict=True),
+        default=300.0,
+        help="bound on the whole run, seconds (default %(default)s)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object (episode lines go to stderr)")
     add_task_flags(p)
     add_policy_flags(p, onnx=True)
@@ -42,13 +62,14 @@ def _line(result: EvalResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    episodes = check_episodes(args.episodes)
-    if args.deadline_ms <= 0:
-        raise bad_value("deadline-ms", args.deadline_ms, "must be > 0")
-    if args.timeout <= 0:
-        raise bad_value("timeout", args.timeout, "must be > 0")
+    from bitcomm.agent_policies import BatchedPolicy
+    from bitcomm.deploy import DeployError, run_deploy
+    from bitcomm.evaluation import evaluate
+
+    episodes = args.episodes
     source = source_from_args(args)
     task = source.task_from_args(args)
+    check_eval(task, episodes)
     source.build(task)  # a policy that cannot be built fails here, with one line, before any process starts
     log = sys.stderr if args.json else sys.stdout
 

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import argparse
 
-from bitcomm.commands.common import add_task_flags, check_episodes, print_result
+from bitcomm.commands.common import add_task_flags, print_result
+from bitcomm.commands.flags import EVAL_EPISODES, SEED, check_eval
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -17,8 +18,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("eval", help="evaluate a trained policy (run folder or checkpoint file)")
     p.add_argument("run_path", metavar="RUN_OR_CHECKPOINT", help="run folder or .safetensors file")
-    p.add_argument("--episodes", type=int, default=2000, help="evaluation episodes (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the episode set and of sampling (default %(default)s)")
+    p.add_argument("--episodes", type=EVAL_EPISODES, default=2000, help="evaluation episodes (default %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the episode set and of sampling (default %(default)s)")
     p.add_argument("--greedy", action="store_true", help="most likely move and message instead of sampling")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     add_task_flags(p)
@@ -32,10 +33,10 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.evaluation import evaluate
     from bitcomm.policy_source import resolve_task
 
-    episodes = check_episodes(args.episodes)
     controller = Controller.load(args.run_path, seed=args.seed)
     task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", strict=True)
+    check_eval(task, args.episodes)
     policy = BatchedPolicy(ControllerAgent(controller, greedy=args.greedy))
-    result = evaluate(policy, task, episodes, args.seed)
+    result = evaluate(policy, task, args.episodes, args.seed)
     print_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
     return 0

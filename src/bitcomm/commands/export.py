@@ -10,13 +10,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from bitcomm.commands.flags import out_file
 from bitcomm.errors import bad_value
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("export", help="export a trained policy network to ONNX (run folder or checkpoint file)")
     p.add_argument("run_path", metavar="RUN_OR_CHECKPOINT", help="run folder or .safetensors file")
-    p.add_argument("--onnx", required=True, metavar="FILE", help="ONNX file to write (its card goes to FILE.json)")
+    p.add_argument(
+        "--onnx", type=out_file, required=True, metavar="FILE", help="ONNX file to write (its card goes to FILE.json)"
+    )
     p.set_defaults(run=run)
 
 

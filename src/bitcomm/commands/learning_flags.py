@@ -19,12 +19,13 @@ import argparse
 import ast
 import importlib.util
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from bitcomm.errors import bad_value
+from bitcomm.errors import ConfigError, bad_value
 
 STRUCTURAL = frozenset({"task", "model", "recipe", "estimator", "messages", "seed", "episodes"})
 """Config fields that are not learning options; each command has its own flags for them."""
@@ -102,14 +103,30 @@ def learning_options() -> dict[str, Option]:
     return {o.name: o for module, cls in SOURCES for o in _class_options(module, cls)}
 
 
+def _argparse_type(option: Option) -> Callable[[str], Any]:
+    """`option.parse` as an argparse type: a word where a number belongs is one usage line naming the flag;
+    the bounds are TrainConfig's and ModelConfig's, checked when the config is built."""
+
+    def parse(text: str) -> Any:
+        try:
+            return option.parse(text)
+        except ConfigError:
+            kind = "an integer" if option.kind is int else "a number" if option.kind is float else "text"
+            raise argparse.ArgumentTypeError(f"invalid value {text!r}: must be {kind}") from None
+
+    parse.__name__ = option.kind.__name__
+    return parse
+
+
 def add_learning_flags(parser: argparse.ArgumentParser) -> None:
     """One flag per learning option, in a group of its own; default None (the recipe's value)."""
     g = parser.add_argument_group("learning options (default: the recipe's value)")
     for o in learning_options().values():
+        text = f"{o.help or o.name.replace('_', ' ')} (default: the recipe's value)"
         if o.kind is bool:
-            g.add_argument(o.flag, dest=o.name, action=argparse.BooleanOptionalAction, default=None, help=o.help)
+            g.add_argument(o.flag, dest=o.name, action=argparse.BooleanOptionalAction, default=None, help=text)
         else:
-            g.add_argument(o.flag, dest=o.name, type=o.kind, default=None, help=o.help)
+            g.add_argument(o.flag, dest=o.name, type=_argparse_type(o), default=None, help=text)
 
 
 def learning_overrides(args: argparse.Namespace) -> dict[str, Any]:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 
 from bitcomm.commands.common import add_task_flags
+from bitcomm.commands.flags import MAX_FPS, MAX_FRAMES, SEED, number, out_dir, out_file
 from bitcomm.errors import bad_value
 from bitcomm.policy_source import add_policy_flags, source_from_args
-from bitcomm.render import record_episode, render_frames, save_gif, save_png_frames
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -17,20 +17,32 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="One frame per step, showing the state after that step: agents, goals, paths, "
         "and the bits sent and received.",
     )
-    p.add_argument("--out", default="episode.gif", help="GIF to write (default %(default)s)")
-    p.add_argument("--frames-dir", default=None, help="also write one PNG per step into this folder")
-    p.add_argument("--seed", type=int, default=0, help="picks the episode (default %(default)s)")
-    p.add_argument("--fps", type=float, default=2.0, help="frames per second of the GIF (default %(default)s)")
+    p.add_argument("--out", type=out_file, default="episode.gif", help="GIF to write (default %(default)s)")
+    p.add_argument(
+        "--frames-dir",
+        type=out_dir,
+        default=None,
+        help="also write one PNG per step into this folder (default: no PNGs)",
+    )
+    p.add_argument("--seed", type=SEED, default=0, help="picks the episode (default %(default)s)")
+    p.add_argument(
+        "--fps",
+        type=number(0.0, MAX_FPS, strict=True),
+        default=2.0,
+        help="frames per second of the GIF (default %(default)s)",
+    )
     add_task_flags(p)
     add_policy_flags(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.fps <= 0:
-        raise bad_value("fps", args.fps, "must be > 0")
+    from bitcomm.render import record_episode, render_frames, save_gif, save_png_frames
+
     source = source_from_args(args)
     task = source.task_from_args(args)
+    if task.env.max_steps > MAX_FRAMES:
+        raise bad_value("max-steps", task.env.max_steps, f"render draws one frame per step: at most {MAX_FRAMES}")
     record = record_episode(source.build(task, seed=args.seed), task, seed=args.seed)
     frames = render_frames(record)
     gif = save_gif(frames, args.out, fps=args.fps)

@@ -46,22 +46,42 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "(--episodes). Writes scaling.csv, scaling.md and scaling.png/.svg.",
     )
     p.add_argument(
-        "--sizes", type=sizes, default="10,16,32,64", help=f"grid sides, each in [2, {MAX_SCALING_SIZE}] (default %(default)s)"
+        "--sizes",
+        type=sizes,
+        default="10,16,32,64",
+        help=f"grid sides, each in [2, {MAX_SCALING_SIZE}] (default %(default)s)",
     )
     p.add_argument(
         "--recipe", choices=tuple(RECIPES), default=DEFAULT_RECIPE, help="networks and update (default %(default)s)"
     )
     p.add_argument("--estimator", choices=("improved", "standard"), default="improved", help="(default %(default)s)")
-    p.add_argument("--batch-episodes", type=integer(1, MAX_BATCH_EPISODES), default=8, help="episodes in the timed batch (default %(default)s)")
-    p.add_argument("--batch-steps", type=integer(1, MAX_BATCH_STEPS), default=32, help="their truncation length (default %(default)s)")
-    p.add_argument("--repeats", type=integer(1, MAX_REPEATS), default=5, help="timed updates, median taken (default %(default)s)")
+    p.add_argument(
+        "--batch-episodes",
+        type=integer(1, MAX_BATCH_EPISODES),
+        default=8,
+        help="episodes in the timed batch (default %(default)s)",
+    )
+    p.add_argument(
+        "--batch-steps",
+        type=integer(1, MAX_BATCH_STEPS),
+        default=32,
+        help="their truncation length (default %(default)s)",
+    )
+    p.add_argument(
+        "--repeats", type=integer(1, MAX_REPEATS), default=5, help="timed updates, median taken (default %(default)s)"
+    )
     p.add_argument(
         "--episodes",
         type=integer(0, MAX_TRAIN_EPISODES),
         default=0,
         help="training budget per size and head for learning curves; 0 skips training (default %(default)s)",
     )
-    p.add_argument("--num-envs", type=integer(1, MAX_BATCH), default=None, help="episodes per training batch (default: the recipe's)")
+    p.add_argument(
+        "--num-envs",
+        type=integer(1, MAX_BATCH),
+        default=None,
+        help="episodes per training batch (default: the recipe's)",
+    )
     p.add_argument(
         "--max-memory-gb",
         type=number(0.0, 1e6, strict=True),
@@ -69,7 +89,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="train only pairs whose estimated training update fits (default %(default)s)",
     )
     p.add_argument("--seed", type=SEED, default=0, help="seed of the networks, batch and runs (default %(default)s)")
-    p.add_argument("--out", type=out_dir, default="scaling", help="folder for scaling.csv/.md/.png/.svg (default %(default)s)")
+    p.add_argument(
+        "--out", type=out_dir, default="scaling", help="folder for scaling.csv/.md/.png/.svg (default %(default)s)"
+    )
     p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
     p.set_defaults(run=run)
 

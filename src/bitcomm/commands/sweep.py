@@ -7,9 +7,11 @@ import json
 import sys
 from pathlib import Path
 
-from bitcomm.commands.common import add_task_flags, check_episodes
+from bitcomm.commands.common import add_task_flags
+from bitcomm.commands.flags import EVAL_EPISODES, SEED, check_eval, out_dir
+from bitcomm.config import TaskConfig
 from bitcomm.policy_source import add_policy_flags, sources_from_args
-from bitcomm.sweep import DEFAULT_SWEEP, SWEEPABLE, parse_param, plot_sweep, run_sweep, write_csv
+from bitcomm.sweep import DEFAULT_SWEEP, SWEEPABLE, parse_param, plot_sweep, run_sweep, with_param, write_csv
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -21,22 +23,39 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         f"each policy on the same episodes. Parameters: {', '.join(SWEEPABLE)}. Default: {defaults}.",
     )
     p.add_argument(
-        "--param", action="append", default=None, metavar="NAME=V1,V2,...", help="a parameter to sweep (repeatable)"
+        "--param",
+        action="append",
+        default=None,
+        metavar="NAME=V1,V2,...",
+        help="a parameter to sweep (repeatable; default: the description's)",
     )
-    p.add_argument("--episodes", type=int, default=1000, help="episodes per point (default %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the episode set (default %(default)s)")
-    p.add_argument("--out", default="sweep", help="folder for sweep.csv, sweep.png and sweep.svg (default %(default)s)")
+    p.add_argument("--episodes", type=EVAL_EPISODES, default=1000, help="episodes per point (default %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the episode set (default %(default)s)")
+    p.add_argument(
+        "--out",
+        type=out_dir,
+        default="sweep",
+        help="folder for sweep.csv, sweep.png and sweep.svg (default %(default)s)",
+    )
     p.add_argument("--json", action="store_true", help="print the points as one JSON list")
     add_task_flags(p)
     add_policy_flags(p, several=True)
     p.set_defaults(run=run)
 
 
+def check_points(task: TaskConfig, params: dict[str, tuple[float, ...]], episodes: int) -> None:
+    """Every point's task built (so a bad value fails now, not after the points before it) and its memory."""
+    for name, values in params.items():
+        for value in values:
+            check_eval(with_param(task, name, value), episodes)
+
+
 def run(args: argparse.Namespace) -> int:
-    episodes = check_episodes(args.episodes)
+    episodes = args.episodes
     params = dict(parse_param(text) for text in args.param) if args.param else dict(DEFAULT_SWEEP)
     sources = sources_from_args(args)
     task = sources[0].task_from_args(args)  # a learned policy's task when RUN is given; others join it
+    check_points(task, params, episodes)
     points = run_sweep(sources, task, params, episodes, args.seed)
     out = Path(args.out)
     csv_path = write_csv(points, out / "sweep.csv")

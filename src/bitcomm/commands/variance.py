@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from bitcomm.commands.common import add_task_flags
+from bitcomm.commands.flags import MAX_BATCH, MAX_REPEATS, SEED, check_play, integer, number, out_dir
 
 if TYPE_CHECKING:
     from bitcomm.variance import VarianceConfig
@@ -37,21 +38,32 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="checkpoints of each run folder: all, latest, spread:N (N evenly spread) or episode counts E1,E2,... "
         "(default %(default)s)",
     )
-    p.add_argument("--batches", type=int, default=64, help="batches compared per stage (default %(default)s)")
-    p.add_argument("--num-envs", type=int, default=32, help="episodes per batch (default %(default)s)")
     p.add_argument(
-        "--fit-batches", type=int, default=100, help="most batches to fit the critics on (default %(default)s)"
+        "--batches", type=integer(2, MAX_REPEATS), default=64, help="batches compared per stage (default %(default)s)"
     )
-    p.add_argument("--fit-steps", type=int, default=4, help="critic steps per fit batch (default %(default)s)")
+    p.add_argument(
+        "--num-envs", type=integer(1, MAX_BATCH), default=32, help="episodes per batch (default %(default)s)"
+    )
+    p.add_argument(
+        "--fit-batches",
+        type=integer(0, MAX_REPEATS),
+        default=100,
+        help="most batches to fit the critics on (default %(default)s)",
+    )
+    p.add_argument(
+        "--fit-steps", type=integer(1, MAX_REPEATS), default=4, help="critic steps per fit batch (default %(default)s)"
+    )
     p.add_argument(
         "--plateau",
-        type=float,
+        type=number(0.0, 1.0),
         default=0.01,
         help="stop fitting once the held-out critic loss improves by less than this fraction (0: never; "
         "default %(default)s)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of critics, episodes and sampling (default %(default)s)")
-    p.add_argument("--out", default="variance", help="folder for variance.csv/.md/.png/.svg (default %(default)s)")
+    p.add_argument("--seed", type=SEED, default=0, help="seed of critics, episodes and sampling (default %(default)s)")
+    p.add_argument(
+        "--out", type=out_dir, default="variance", help="folder for variance.csv/.md/.png/.svg (default %(default)s)"
+    )
     p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
     add_task_flags(p)
     mark_task_defaults(p)
@@ -90,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
     for file in files:
         stage = load_stage(file)
         task = resolve_task(args, stage.config.task, label=f"checkpoint {str(file)!r}", strict=True)
+        check_play(task, "num-envs", vcfg.num_envs, vcfg.num_envs, task.env.max_steps)
         stage_rows = measure_stage(stage.on_task(task), vcfg)
         rows += stage_rows
         if not args.json:

@@ -1,0 +1,232 @@
+"""Argument types and limits of the `bitcomm` command line, in one place.
+
+Each type refuses a bad value while argparse parses, so a command fails with one line naming the
+flag, the value and what is allowed (`argument --seed: invalid value '-1': ...`, exit status 2)
+before any work starts. The limits bound what one command may ask of one machine: a size whose
+buffers would not fit in memory is refused up front with the estimate (`check_memory`), and counts
+that only make a command run for days have a documented cap. No heavy imports: every command
+builds every parser.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from bitcomm.errors import bad_value
+
+if TYPE_CHECKING:
+    from bitcomm.config import TaskConfig
+    from bitcomm.train.config import TrainConfig
+
+MAX_SEED = 2**32 - 1
+"""Seeds feed numpy's SeedSequence and torch.manual_seed; 32 bits is what both take everywhere."""
+MAX_EVAL_EPISODES = 10_000_000
+"""Evaluation keeps 17 bytes per episode and plays 4,096 at a time: 10^7 is 170 MB and hours of CPU."""
+MAX_TRAIN_EPISODES = 1_000_000_000
+"""A training budget beyond 10^9 episodes would run for years on a CPU."""
+MAX_BATCH = 65_536
+"""Episodes played side by side (`--envs`, `--num-envs`, `--batch-episodes`); memory is checked too."""
+MAX_SAMPLES = 10_000_000
+"""`analyze --samples`: 10^7 deliveries is minutes of play and a few hundred MB."""
+MAX_REPEATS = 10_000
+"""Repetitions of a measurement (`--repeats`, `--batches`, `--fit-*`, `--seeds`): beyond this, days."""
+MAX_JOBS = 1024
+"""Processes at once (`--jobs`, `--threads`)."""
+MAX_FRAMES = 1000
+"""`render` draws one frame per step of an episode truncated at `--max-steps`: at most 1,000 frames."""
+MAX_FPS = 100.0
+"""A GIF frame lasts a whole number of 10 ms ticks: more than 100 frames per second cannot be shown."""
+MAX_SECONDS = 7 * 24 * 3600.0
+"""Timeouts in seconds: a week at most."""
+MAX_DEADLINE_MS = 60_000.0
+"""`deploy --deadline-ms`: a step waits at most a minute for its messages."""
+EVAL_BATCH = 4096
+"""Episodes evaluation plays side by side (`bitcomm.evaluation.EVAL_CHUNK`, held equal by a test)."""
+BYTES_PER_GB = 1 << 30
+
+
+def _range(least: float, most: float, strict: bool = False) -> str:
+    low = f"> {least:g}" if strict else f">= {least:g}"
+    return low if math.isinf(most) else f"{'in (' if strict else 'in ['}{least:g}, {most:g}]"
+
+
+def integer(least: int, most: int, why: str = "") -> Callable[[str], int]:
+    """An argparse type: a whole number in [least, most]; `why` says what the cap protects."""
+
+    def parse(text: str) -> int:
+        allowed = f"must be an integer in [{least}, {most}]{f' ({why})' if why else ''}"
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid value {text!r}: {allowed}") from None
+        if not least <= value <= most:
+            raise argparse.ArgumentTypeError(f"invalid value {text!r}: {allowed}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def number(least: float, most: float = math.inf, strict: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite number >= least (> with `strict`) and <= most; NaN and inf never are."""
+
+    def parse(text: str) -> float:
+        allowed = f"must be a finite number {_range(least, most, strict)}"
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid value {text!r}: {allowed}") from None
+        low_ok = value > least if strict else value >= least
+        if not (math.isfinite(value) and low_ok and value <= most):
+            raise argparse.ArgumentTypeError(f"invalid value {text!r}: {allowed}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+SEED = integer(0, MAX_SEED)
+EVAL_EPISODES = integer(1, MAX_EVAL_EPISODES, "about 170 MB and hours of play")
+
+
+def _writable(folder: Path) -> bool:
+    """Writable by this user, and not marked read-only (no write bit) even for root, who os.access ignores."""
+    return os.access(folder, os.W_OK | os.X_OK) and bool(folder.stat().st_mode & 0o222)
+
+
+def folder_problem(path: Path) -> str | None:
+    """Why files cannot be written in folder `path` (made with its parents if missing), or None."""
+    if path.exists() and not path.is_dir():
+        return "is a file, not a folder"
+    probe = path
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        return f"{str(probe)!r} is a file, so no folder can be made in it"
+    if not _writable(probe):
+        return f"folder {str(probe)!r} is read-only"
+    return None
+
+
+def out_dir(text: str) -> Path:
+    """An argparse type: a folder to write into (made if missing), refused if it is a file or read-only."""
+    problem = "must not be empty" if not text.strip() else folder_problem(Path(text))
+    if problem:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: {problem}")
+    return Path(text)
+
+
+def out_file(text: str) -> Path:
+    """An argparse type: a file to write (its folder made if missing), refused if a folder or read-only."""
+    path = Path(text)
+    problem = None
+    if not text.strip():
+        problem = "must not be empty"
+    elif path.is_dir():
+        problem = "is a folder; give a file name"
+    elif path.exists() and not (path.stat().st_mode & 0o222 and os.access(path, os.W_OK)):
+        problem = "is a read-only file"
+    else:
+        problem = folder_problem(path.parent)
+    if problem:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: {problem}")
+    return path
+
+
+def available_bytes() -> int:
+    """Memory the system can still give (MemAvailable), or all of it where /proc is missing."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def play_bytes(task: TaskConfig, episodes: int, steps: int = 1) -> int:
+    """Memory of `episodes` played side by side, `steps` of them kept: the uint8 observation planes and
+    state (4n S^2), messages in flight (delay n K) and the float32 copies the networks read (x4, twice)."""
+    env, ch = task.env, task.channel
+    per_step = 4 * env.n_agents * env.cells * 9
+    in_flight = ch.delay * env.n_agents * ch.bits * task.slots
+    return episodes * (steps * per_step + in_flight)
+
+
+def onehot_bytes(task: TaskConfig, hidden: int, message_hidden: int) -> int:
+    """Parameters touched by 2^K one-hot messages (the policy's output, every network's message input),
+    in float32 with their gradient and two Adam moments (x16 bytes)."""
+    return task.channel.messages * (hidden + 3 * task.slots * message_hidden) * 16
+
+
+def network_bytes(cfg: TrainConfig) -> int:
+    """A bound on the policy's and both critics' parameters (float32, with gradient and Adam: x16): the
+    fully connected layers over the widest convolution output (stride ignored, so an overestimate)."""
+    model, task = cfg.model, cfg.task
+    wide = max(model.conv_channels, default=1) * task.env.cells + model.message_hidden
+    return 3 * 16 * (model.hidden * (wide + model.hidden) + model.message_hidden * 4 * task.env.n_agents * 64)
+
+
+def check_memory(flag: str, value: object, need: int, what: str) -> None:
+    """One error line, with the estimate, when `need` bytes exceed the memory available now."""
+    have = available_bytes()
+    if need > have:
+        raise bad_value(
+            flag, value, f"{what}: about {need / BYTES_PER_GB:.1f} GB needed, {have / BYTES_PER_GB:.1f} GB available"
+        )
+
+
+def check_play(task: TaskConfig, flag: str, value: object, episodes: int, steps: int = 1) -> None:
+    """`check_memory` for `episodes` played side by side on `task`."""
+    check_memory(flag, value, play_bytes(task, episodes, steps), f"{episodes} episodes side by side on this task")
+
+
+def check_eval(task: TaskConfig, episodes: int) -> None:
+    """`check_play` for an evaluation of `episodes` (played `EVAL_BATCH` at a time)."""
+    check_play(task, "episodes", episodes, min(episodes, EVAL_BATCH))
+
+
+def check_train(cfg: TrainConfig, processes: int = 1) -> None:
+    """Memory of `processes` training runs at once: rollout buffers, and the parameters of 2^K one-hot
+    messages (which is what 24 bits of one-hot messages ran out of: 64 GB)."""
+    task = cfg.training_task
+    for name, most in (("workers", MAX_JOBS), ("epochs", MAX_REPEATS)):
+        if getattr(cfg, name) > most:
+            raise bad_value(name.replace("_", "-"), getattr(cfg, name), f"must be an integer in [1, {most}]")
+    workers = cfg.workers if cfg.mode == "a3c" else 1
+    learners = processes * workers
+    wider = max(("hidden", "message_hidden"), key=lambda name: getattr(cfg.model, name))
+    check_memory(wider.replace("_", "-"), getattr(cfg.model, wider), learners * network_bytes(cfg), "the networks")
+    batch = cfg.num_envs * workers * processes
+    rollouts = play_bytes(task, batch, task.env.max_steps)
+    onehot = 0
+    if cfg.model.messages == "onehot":
+        onehot = learners * onehot_bytes(task, cfg.model.hidden, cfg.model.message_hidden)
+    if onehot > rollouts:
+        what = f"one-hot messages over 2^{task.channel.bits} words ({learners} learner(s))"
+        check_memory("bits", task.channel.bits, onehot + rollouts, what)
+    else:
+        what = f"{batch} episodes of {task.env.max_steps} steps on a {task.env.size}x{task.env.size} grid"
+        check_memory("num-envs", cfg.num_envs, onehot + rollouts, what)
+
+
+def check_episodes(episodes: int) -> int:
+    """Evaluation episodes given other than on the command line (a library call, a resumed config)."""
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or not 1 <= episodes <= MAX_EVAL_EPISODES:
+        raise bad_value("episodes", episodes, f"must be an integer in [1, {MAX_EVAL_EPISODES}]")
+    return episodes
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Shows every flag's default: help that names no default gets "(default: X)" appended."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "default" in text.lower() or action.default in (None, False, argparse.SUPPRESS) or not action.option_strings:
+            return text
+        return f"{text} (default: %(default)s)".strip()
