@@ -75,7 +75,7 @@ def test_human_readable_output() -> None:
     ("flags", "parameter", "value"),
     [
         (["--size", "1"], "size", "1"),
-        (["--agents", "1"], r"\bagents=", "1"),  # the flag, not the field n_agents
+        (["--agents", "1"], r"--agents\b", "1"),  # the flag, not the field n_agents
         (["--flip-prob", "1.5"], "flip.prob", "1.5"),
         (["--flip-prob", "-0.1"], "flip.prob", "-0.1"),
         (["--drop-prob", "2"], "drop.prob", "2"),

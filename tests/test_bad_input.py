@@ -1,0 +1,287 @@
+"""Every flag of every command fed bad values: exit status 2 and one stderr line that names the flag,
+the value and what is allowed, before any work starts (each case takes milliseconds).
+
+The cases are derived from the parsers (`bitcomm.cli.build_parser()`), so a new flag or command is
+covered with no edit here: a flag's type picks its bad values (`BAD`), a text flag with a syntax of
+its own lists them in `BAD_TEXT`, and `ALLOWED` documents each bad-looking value a flag legitimately
+accepts (those are not run). `KNOWN` adds the cross-flag cases of issue 20.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import re
+import signal
+import stat
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from bitcomm.cli import build_parser, main
+
+FILE, READONLY, DIRECTORY = "<an existing file>", "<in a read-only folder>", "<an existing folder>"
+BAD: dict[str, list[str]] = {
+    "integer": ["-1", "0", "1000000000000", "abc", "2.5", "nan"],
+    "number": ["-1", "0", "nan", "inf", "-inf", "1e300", "abc"],
+    "out_dir": [FILE, READONLY, ""],
+    "out_file": [DIRECTORY, READONLY, ""],
+    "choice": ["nonsense"],
+    "positional": ["no/such/run", FILE],
+}
+"""Bad values by kind of flag: `integer` and `number` are also the learning options' int and float."""
+
+BAD_TEXT: dict[str, list[str]] = {
+    "--observes": ["0,0", "5,0", "a,b", "1"],
+    "--recipients": ["5;0", "0;1", "x", "1,1;0"],
+    "--sizes": ["1000", "1", "abc", "", "10,-4"],
+    "--stages": ["nonsense", "spread:0", "-5"],
+    "--techniques": ["nonsense", "", "improved-bitwise,improved-bitwise"],
+    "--vary": ["nonsense", "lr=", "lr=inf", "lr=abc", "hidden=-8", "delay=300", "flip_prob=2"],
+    "--param": ["nonsense", "delay=", "delay=300", "flip_prob=nan", "act_delay=abc", "delay=1.5"],
+    "--onnx": ["no/such/file.onnx", FILE],
+}
+"""Text flags with a syntax of their own (`--onnx` of deploy reads a file; export's writes one)."""
+
+ALL = "*"
+ALLOWED: dict[tuple[str, str], set[str]] = {
+    # (command or *, flag) -> values that are legitimate, with why
+    (ALL, "--seed"): {"0"},  # seed 0 is the default
+    (ALL, "--eval-seed"): {"0"},
+    (ALL, "--act-delay"): {"0"},  # moves take effect at once (the paper)
+    (ALL, "--flip-prob"): {"0"},  # probabilities: 0 is a noiseless channel
+    (ALL, "--drop-prob"): {"0"},
+    (ALL, "--act-fail-prob"): {"0"},
+    ("train", "--eval-episodes"): {"0"},  # 0: no final evaluation
+    ("scaling", "--episodes"): {"0"},  # 0 skips training
+    ("variance", "--fit-batches"): {"0"},  # 0: critics not fitted
+    ("variance", "--plateau"): {"0"},  # 0: always fit every batch
+    # learning options: 0 turns a loss term or trick off; a huge value is allowed where it means "never"/"all"
+    (ALL, "--train-max-steps"): {"0", "1000000000000"},  # 0 or beyond max_steps: the task's own limit
+    (ALL, "--keep-checkpoints"): {"1000000000000"},  # keep them all
+    (ALL, "--conv-stride"): {"1000000000000"},  # every layer down to one cell
+    (ALL, "--checkpoint-seconds"): {"0", "1e300"},  # 0: every batch; huge: only at the end
+    **{
+        (ALL, f"--{name}"): {"0", "1e300"}
+        for name in (
+            "entropy-move",
+            "entropy-message",
+            "uniform-move",
+            "clip",
+            "goal-coef",
+            "seen-coef",
+            "code-coef",
+            "channel-noise",
+            "max-grad-norm",
+            "aux-coef",
+        )
+    },
+    # a finite huge rate is a choice (the run's NaN guard stops it), not a typo
+    **{(ALL, f"--{name}"): {"1e300"} for name in ("lr", "critic-lr", "map-lr")},
+}
+
+RUN = "<a tiny trained run>"
+REQUIRED: dict[str, list[str]] = {"eval": [RUN], "export": [RUN, "--onnx", "x.onnx"], "variance": [RUN]}
+"""Arguments a command needs: a real run, so that task flags are checked against its task."""
+
+KNOWN: list[tuple[list[str], str]] = [
+    (["train", "--delay", "300"], "delay"),  # never arrives in a 256-step episode
+    (["train", "--delay", "100"], "delay"),  # nor within the recipe's 64 training steps
+    (["baseline", "--delay", "20", "--max-steps", "10"], "delay"),
+    (["baseline", "--act-delay", "20", "--max-steps", "10"], "act_delay"),
+    (["train", "--messages", "onehot", "--bits", "30"], "bits"),  # 2^30 one-hot words
+    (["train", "--messages", "onehot", "--bits", "24", "--size", "4"], "bits"),
+    (["train", "--num-envs", "100000000"], "num-envs"),
+    (["train", "--hidden", "-8"], "hidden"),
+    (["train", "--hidden", "100000000"], "hidden"),
+    (["train", "--epochs", "100000000"], "epochs"),
+    (["train", "--lr", "inf"], "lr"),
+    (["train", "--checkpoint-seconds", "-1"], "checkpoint-seconds"),
+    (["train", "--checkpoint-seconds", "nan"], "checkpoint-seconds"),
+    (["render", "--max-steps", "100000"], "max-steps"),  # one frame per step
+    (["analyze", "--samples", "1000000000000"], "samples"),
+    (["scaling", "--sizes", "1000"], "sizes"),
+    (["deploy", "--deadline-ms", "inf"], "deadline-ms"),
+    (["deploy", "--timeout", "nan"], "timeout"),
+    (["deploy", "--timeout", "inf"], "timeout"),
+    (["render", "--fps", "nan"], "fps"),
+    (["baseline", "--seed", "-1"], "seed"),
+    (["baseline", "--size", "100000"], "size"),
+    (["baseline", "--bits", "4"], "bits"),  # the oracle needs 7 bits on a 10x10 grid
+    (["compare", "--vary", "lr=1e-3,1e-3"], "vary"),
+    (["compare", "--seeds", "5", "--eval-seed", "3"], "eval-seed"),
+]
+
+
+def kind(action: argparse.Action) -> str | None:
+    """Which list of `BAD` applies, "text" for `BAD_TEXT`, None for a flag that takes no value."""
+    if action.nargs == 0 or isinstance(action, argparse.BooleanOptionalAction):
+        return None
+    if not action.option_strings:
+        return "positional"
+    name = getattr(action.type, "__name__", "")
+    if action.choices is not None or name == "str":  # a learning option of text is a choice of its config's
+        return "choice"
+    if action.type is int or name in ("integer", "int"):
+        return "integer"
+    if action.type is float or name in ("number", "float"):
+        return "number"
+    if name in ("out_dir", "out_file"):
+        return name
+    return "text"
+
+
+def subparsers() -> dict[str, argparse.ArgumentParser]:
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def cases() -> Iterator[tuple[str, str, str]]:
+    """(command, flag, value) for every flag of every command and each bad value that applies."""
+    for command, parser in subparsers().items():
+        for action in parser._actions:
+            k = kind(action)
+            if k is None:
+                continue
+            flag = action.option_strings[-1] if action.option_strings else action.metavar or action.dest
+            values = BAD_TEXT.get(flag) if k == "text" or (flag == "--onnx" and command == "deploy") else BAD[k]
+            assert values is not None, f"{command} {flag}: a text flag needs its bad values in BAD_TEXT"
+            allowed = ALLOWED.get((command, flag), set()) | ALLOWED.get((ALL, flag), set())
+            for value in values:
+                if value not in allowed:
+                    yield command, str(flag), value
+
+
+CASES = list(cases())
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> str:
+    out = tmp_path_factory.mktemp("bad_input") / "run"
+    argv = ["train", "--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--episodes", "16"]
+    assert main([*argv, "--quiet", "--eval-episodes", "0", "--threads", "1", "--out", str(out)]) == 0
+    return str(out)
+
+
+@pytest.fixture
+def places(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, tiny_run: str) -> Iterator[dict[str, str]]:
+    """A file, a folder, a read-only folder and a run; the cwd is tmp_path, so a default --out lands there."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "file.txt").write_text("not a folder, not a checkpoint\n")
+    (tmp_path / "folder").mkdir()
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(stat.S_IRUSR | stat.S_IXUSR)
+    yield {FILE: "file.txt", DIRECTORY: "folder", READONLY: "locked/out", RUN: tiny_run}
+    locked.chmod(stat.S_IRWXU)
+
+
+class TookTooLong(Exception):
+    """Raised by the alarm: the command started work instead of refusing."""
+
+
+def run_cli(argv: list[str], capsys: pytest.CaptureFixture[str], seconds: int = 30) -> tuple[int, list[str]]:
+    """`bitcomm.cli.main(argv)` in this process: its exit status and stderr lines (the alarm stops work)."""
+
+    def alarm(*_: object) -> None:
+        raise TookTooLong(f"{argv} ran past {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    signal.alarm(seconds)
+    try:
+        code = main(argv)
+    except SystemExit as exit_:
+        code = exit_.code if isinstance(exit_.code, int) else 1
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    return code, capsys.readouterr().err.strip().splitlines()
+
+
+def names(line: str, flag: str, value: str) -> bool:
+    """The line names the flag (a positional by what it holds; `--vary`/`--param` by the option varied)."""
+    forms = {flag.lstrip("-"), flag.lstrip("-").replace("-", "_")}
+    if not flag.startswith("--"):
+        forms |= {"RUN", "checkpoint"}
+    if flag in ("--vary", "--param"):
+        forms.add(value.partition("=")[0])
+    return any(form and form in line for form in forms)
+
+
+def says_allowed(line: str) -> bool:
+    """After the value comes what is wrong with it or what is allowed: `invalid NAME=VALUE: REASON`."""
+    return re.search(r"invalid .+: \S", line) is not None
+
+
+@pytest.mark.parametrize(("command", "flag", "value"), CASES, ids=[" ".join(c) for c in CASES])
+def test_flag_refuses_bad_value(
+    command: str, flag: str, value: str, places: dict[str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = places.get(value, value)
+    required = REQUIRED.get(command, [])
+    positional = not flag.startswith("--")
+    required = [places.get(r, r) for r in required]
+    # --flag=VALUE: argparse reads a lone "-inf" as a flag of its own ("expected one argument")
+    argv = [command, text, *required[1:]] if positional else [command, *required, f"{flag}={text}"]
+    code, lines = run_cli(argv, capsys)
+    assert code == 2, (argv, lines)
+    assert len(lines) == 1, (argv, lines)
+    assert names(lines[0], flag, text) and says_allowed(lines[0]), (argv, lines)
+    assert "Traceback" not in lines[0]
+
+
+@pytest.mark.parametrize(("argv", "flag"), KNOWN, ids=[" ".join(a) for a, _ in KNOWN])
+def test_known_bad_inputs_refused(
+    argv: list[str], flag: str, places: dict[str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, lines = run_cli(argv, capsys)
+    assert code == 2 and len(lines) == 1, (argv, lines)
+    assert names(lines[0], flag, "") and says_allowed(lines[0]), (argv, lines)
+
+
+def test_every_command_and_flag_is_covered() -> None:
+    """Each command has cases, and every flag that takes a value has at least one bad value tried."""
+    parsers = subparsers()
+    covered = {(c, f) for c, f, _ in CASES}
+    for command, parser in parsers.items():
+        for action in parser._actions:
+            if kind(action) is None:
+                continue
+            flag = action.option_strings[-1] if action.option_strings else action.metavar or action.dest
+            assert (command, str(flag)) in covered, f"{command} {flag}: every bad value is ALLOWED?"
+    assert len(CASES) > 500
+
+
+def test_every_flag_has_help_and_a_default_shown() -> None:
+    for command, parser in subparsers().items():
+        help_text = parser.format_help()
+        for action in parser._actions:
+            if not action.option_strings or action.dest == "help":
+                continue
+            assert action.help, f"{command} {action.option_strings[0]} has no help text"
+            shown = "default" in (action.help or "").lower() or action.default in (None, False)
+            assert shown or "(default: " in help_text, f"{command} {action.option_strings[0]}"
+
+
+def test_help_is_fast_and_imports_no_torch() -> None:
+    """`bitcomm --help` builds every parser: that must not import torch (2 s) and must take < 0.5 s."""
+    code = "import sys, time; t = time.perf_counter(); import bitcomm.cli; bitcomm.cli.build_parser(); "
+    code += "print(time.perf_counter() - t, 'torch' in sys.modules)"
+    best = math.inf
+    for _ in range(3):  # the best of three: other processes share this machine
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=os.environ)
+        seconds, torch_loaded = out.stdout.split()
+        assert torch_loaded == "False"
+        best = min(best, float(seconds))
+    assert best < 0.5, f"building the parsers took {best:.2f} s"
+
+
+def test_eval_batch_matches_the_evaluator() -> None:
+    from bitcomm.commands.flags import EVAL_BATCH
+    from bitcomm.evaluation import EVAL_CHUNK
+
+    assert EVAL_BATCH == EVAL_CHUNK
