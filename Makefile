@@ -5,6 +5,9 @@ BIN := $(VENV)/bin
 TORCH := torch==2.13.0
 RUN ?= runs/default
 EPISODES ?= 50000
+# torch threads; empty: bitcomm picks the cores the load average leaves free (a thread on a busy core
+# costs more than it gives: with one other busy core, 2 threads trained 2.9x slower than 1)
+THREADS ?=
 
 .PHONY: install train test lint bench clean
 
@@ -16,9 +19,17 @@ $(BIN)/bitcomm: pyproject.toml
 
 install: $(BIN)/bitcomm
 
+# Re-runnable: a RUN with a checkpoint is resumed (a finished one just evaluated again); a RUN that exists
+# without one is left alone and a fresh RUN-<date>-<time> is used. Which one is printed first.
 train: install
-	$(BIN)/bitcomm train --estimator improved --messages bitwise --episodes $(EPISODES) --out $(RUN)
-	$(BIN)/bitcomm eval $(RUN) --episodes 2000 --seed 0
+	@run="$(RUN)"; resume=""; \
+	if [ -f "$$run/checkpoints/latest.json" ]; then resume="--resume"; echo "make train: resuming $$run"; \
+	elif [ -e "$$run" ]; then run="$(RUN)-$$(date +%Y%m%d-%H%M%S)"; \
+		echo "make train: $(RUN) exists without a checkpoint; training a fresh run in $$run"; \
+	else echo "make train: training a fresh run in $$run"; fi; \
+	$(BIN)/bitcomm train --estimator improved --messages bitwise --episodes $(EPISODES) --out "$$run" $$resume \
+		$(if $(THREADS),--threads $(THREADS)) && \
+	$(BIN)/bitcomm eval "$$run" --episodes 2000 --seed 0
 
 test: install
 	$(BIN)/python -m pytest

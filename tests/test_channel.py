@@ -190,3 +190,17 @@ def test_codec_round_trips_torch(K: int) -> None:
     assert torch.equal(bits_to_onehot(bits), onehot)
     # numpy and torch agree
     np.testing.assert_array_equal(bits.numpy(), index_to_bits(index.numpy(), K))
+
+
+def test_reset_returns_the_observation_and_a_hand_loop_runs() -> None:
+    """`reset()` returns what `observe()` would; the loop of VecGoalExchange's docstring runs as written."""
+    task = TaskConfig()
+    n, K = task.env.n_agents, task.channel.bits
+    env = VecGoalExchange(task, num_envs=8, seed=0)
+    obs = env.reset()
+    assert obs.planes.shape == (8, n, 2, task.env.size, task.env.size) and not obs.received.any()
+    assert (obs.t == 0).all()
+    for _ in range(100):
+        result, dropped = env.step(np.zeros((8, n), dtype=np.int64), np.zeros((8, n, K), dtype=np.uint8))
+        obs = env.observe()
+    assert dropped.shape == (8, n) and result.team_reward.shape == (8,)

@@ -16,7 +16,6 @@ from bitcomm.errors import ConfigError
 from bitcomm.evaluation import evaluate
 from bitcomm.policies import OraclePolicy
 from bitcomm.policy_source import (
-    LEARNED_UNAVAILABLE,
     PolicySource,
     add_policy_flags,
     given_task_flags,
@@ -99,10 +98,7 @@ def test_sources() -> None:
     assert PolicySource.from_dict(PolicySource("run", "x", True).to_dict()) == PolicySource("run", "x", True)
 
 
-def test_run_needs_controller() -> None:
-    import bitcomm
-
-    if hasattr(bitcomm, "Controller"):
-        pytest.skip("Controller exists: learned policies are tested with it")
-    with pytest.raises(ConfigError, match=LEARNED_UNAVAILABLE):
+def test_run_that_cannot_be_loaded_is_one_error_line() -> None:
+    """A RUN that is not a run folder or checkpoint: one ConfigError naming it, not a traceback."""
+    with pytest.raises(ConfigError, match="cannot load RUN 'runs/none'"):
         PolicySource("run", "runs/none").base_task()

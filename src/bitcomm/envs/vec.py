@@ -25,7 +25,20 @@ class Observation(NamedTuple):
 
 
 class VecGoalExchange:
-    """B self-resetting episodes of the goal-exchange task with its K-bit channel."""
+    """B self-resetting episodes of the goal-exchange task with its K-bit channel.
+
+    Stepping it by hand (what `bitcomm.rollout` and `bitcomm.evaluation` do, batched)::
+
+        env = VecGoalExchange(TaskConfig(), num_envs=8, seed=0)   # episodes already started
+        obs = env.reset()                                         # or env.observe(): the same thing now
+        for _ in range(100):
+            moves = np.zeros((8, n), dtype=np.int64)              # (B, n) move indices (`envs.core.MOVE_NAMES`)
+            bits = np.zeros((8, n, K), dtype=np.uint8)            # (B, n, K) the bits each agent sends
+            result, dropped = env.step(moves, bits)               # rewards, terminated/truncated, finished
+            obs = env.observe()                                   # ended episodes have restarted already
+
+    An observation is a view of live buffers: copy what you keep across steps.
+    """
 
     def __init__(
         self,
@@ -43,11 +56,13 @@ class VecGoalExchange:
         self.channel = Channel(task, num_envs, seed=channel_seed)
         self._received = self.channel.received()
 
-    def reset(self, mask: np.ndarray | None = None) -> None:
-        """Start new episodes in the slots of `mask` (every slot when None), with no messages in flight."""
+    def reset(self, mask: np.ndarray | None = None) -> Observation:
+        """Start new episodes in the slots of `mask` (every slot when None), with no messages in flight;
+        returns the observation of every slot (as `observe()`), so a hand-written loop starts from it."""
         self.core.reset(mask)
         self.channel.reset(mask)
         self._received = self.channel.received()
+        return self.observe()
 
     def observe(self) -> Observation:
         return Observation(self.core.obs, self._received, self.core.state, self.core.t)

@@ -262,7 +262,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
             }
             finite_or_stop(out, learner, prog.episodes)
             logger.log(row)
-            bar.update(len(length))
+            bar.update(min(len(length), max(0, bar.total - bar.n)))  # workers overshoot the budget: the bar stops at it
             bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")
             if time.monotonic() - last_save >= cfg.checkpoint_seconds and claimed.value < cfg.episodes:
                 save()

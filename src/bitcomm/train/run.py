@@ -341,7 +341,8 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
         plot_learning_curve(out)
         return path
 
-    bar = tqdm(total=cfg.episodes, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
+    planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs  # whole batches: the episodes that will be played
+    bar = tqdm(total=planned, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
     last_save = time.monotonic()
     path = None
     try:
