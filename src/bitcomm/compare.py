@@ -413,6 +413,12 @@ def first_below(curve: Curve, level: float) -> dict[str, float] | None:
     return {"episodes": int(curve.episodes[below[0]]), "wall_s": float(curve.wall_s[below[0]])}
 
 
+def rolling_at(curve: Curve, wall_s: float) -> float:
+    """The rolling mean episode length of the last row logged at or before `wall_s` seconds of training."""
+    rows = np.flatnonzero(curve.wall_s <= wall_s)
+    return float(curve.length_rolling[rows[-1] if rows.size else 0])
+
+
 def interval(values: list[float]) -> dict[str, Any] | None:
     """Mean and 95% interval over seeds (None for no values)."""
     if not values:
@@ -439,7 +445,11 @@ def threshold_key(multiple: float) -> str:
 def summarize(
     cfg: CompareConfig, runs: list[Run], curves: dict[Path, Curve], oracle: dict[str, EvalResult | None]
 ) -> dict[str, Any]:
-    """summary.json: the study, the oracle per task variant, and per configuration its runs and their intervals."""
+    """summary.json: the study, the oracle per task variant, and per configuration its runs and their intervals.
+
+    Besides the end of the budget (equal episodes), every run is also read at the training time of the
+    quickest run (equal wall-clock): a technique whose updates cost more has then played fewer episodes."""
+    equal_wall = min(float(curves[r.folder].wall_s[-1]) for r in runs)
     configurations = []
     for conf in dict.fromkeys(r.configuration for r in runs):
         result = oracle[conf.task_variant]
@@ -456,6 +466,7 @@ def summarize(
                     "episodes": int(curve.episodes[-1]),
                     "wall_s": float(curve.wall_s[-1]),
                     "final_rolling_episode_length": float(curve.length_rolling[-1]),
+                    "rolling_at_equal_wall": rolling_at(curve, equal_wall),
                     "sampled": evaluation["sampled"],
                     "greedy": evaluation["greedy"],
                     "reached": {
@@ -473,6 +484,7 @@ def summarize(
             "values": dict(conf.values),
             "oracle_mean_episode_length": level,
             "wall_s": interval([r["wall_s"] for r in records]),
+            "rolling_at_equal_wall": interval([r["rolling_at_equal_wall"] for r in records]),
         }
         for play in ("sampled", "greedy"):
             entry[play] = {
@@ -503,6 +515,7 @@ def summarize(
             "eval_episodes": cfg.eval_episodes,
             "eval_seed": cfg.eval_seed,
             "thresholds": [threshold_key(m) for m in THRESHOLDS],
+            "equal_wall_s": equal_wall,
         },
         "oracle": {variant: None if r is None else r.to_dict() for variant, r in oracle.items()},
         "configurations": configurations,
@@ -605,7 +618,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
     keys = study["thresholds"]
     header = ["configuration", "length (sampled)", "return (sampled)", "length (greedy)", "return (greedy)",
               *(f"episodes to {k} oracle" for k in keys), *(f"seconds to {k} oracle" for k in keys),
-              "seconds per run"]  # fmt: skip
+              "seconds per run", f"rolling length after {study['equal_wall_s']:,.0f} s"]  # fmt: skip
     lines = [
         f"# bitcomm compare: {study['recipe']} recipe, {_plural(study['seeds'], 'seed', 'seeds')} x "
         f"{study['episodes']:,} episodes",
@@ -615,7 +628,8 @@ def table_markdown(summary: dict[str, Any]) -> str:
         + "".join(f"; varied {k}: {', '.join(_format(x) for x in v)}" for k, v in study["vary"].items())
         + f". Evaluation: {study['eval_episodes']} episodes of seed {study['eval_seed']}, sampled and greedy.",
         "Each cell is the mean ± the 95% half-interval over seeds (Student t); (k/n): the seeds that reached the "
-        "level, averaged over those; seconds are training wall time, with runs sharing the machine's cores.",
+        "level, averaged over those; seconds are training wall time, with runs sharing the machine's cores. The "
+        "last column reads every run's rolling mean at the quickest run's training time (equal wall-clock).",
         "",
         "| " + " | ".join(header) + " |",
         "|" + "---|" * len(header),
@@ -623,7 +637,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
     for variant, result in summary["oracle"].items():
         if result is not None:
             cells = [f"{result['mean_episode_length']:.2f}", f"{result['mean_team_return']:.2f}"] * 2
-            lines.append("| " + " | ".join([f"oracle {variant}".strip(), *cells, *["—"] * (2 * len(keys) + 1)]) + " |")
+            lines.append("| " + " | ".join([f"oracle {variant}".strip(), *cells, *["—"] * (2 * len(keys) + 2)]) + " |")
     for c in summary["configurations"]:
         reached = [c["reached"][k] if c["reached"] is not None else None for k in keys]
         cells = [c["name"]]
@@ -631,7 +645,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
             cells += [_cell(c[play]["mean_episode_length"], ".2f"), _cell(c[play]["mean_team_return"], ".2f")]
         for what, fmt in (("episodes", ",.0f"), ("wall_s", ",.1f")):
             cells += [_reached_cell(r, what, fmt) for r in reached]
-        cells.append(_cell(c["wall_s"], ",.1f"))
+        cells += [_cell(c["wall_s"], ",.1f"), _cell(c["rolling_at_equal_wall"], ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
