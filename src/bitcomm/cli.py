@@ -42,7 +42,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exit_:  # a usage error (2, its line printed) or --help (0): a status, as run() returns
+        return exit_.code if isinstance(exit_.code, int) else 2
     try:
         return int(args.run(args) or 0)
     except ConfigError as err:
