@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 TORCH := torch==2.13.0
 RUN ?= runs/default
-EPISODES ?= 50000
+EPISODES ?= 200000
 # torch threads; empty: bitcomm picks the cores the load average leaves free (a thread on a busy core
 # costs more than it gives: with one other busy core, 2 threads trained 2.9x slower than 1)
 THREADS ?=

@@ -67,10 +67,10 @@ CSV_POINTS = 1000
 EVALUATION = "evaluation.json"
 RESUMABLE = ("episodes", "checkpoint_seconds", "keep_checkpoints")
 """Config fields a finished or partial run may differ in from the study and still count as its run."""
-STUDY_EPISODES = 40_000
-"""The default budget of every run: on the default task, improved + bitwise under `fast` reaches 1.15x
-the oracle after about 30,000 episodes and greedy play within 1.05x after about 50,000 (docs/tuning.md),
-while the whole study (25 runs, two at a time) took 1 h 57 min on 2 cores (docs/results.md)."""
+STUDY_EPISODES = 60_000
+"""The default budget of every run: on the default task, improved + bitwise under `reinforced` is below
+2x the oracle after 27,000-39,000 episodes and its rolling mean near 1.25x after 60,000 (docs/tuning.md, session 8), so
+the techniques separate within it; a run takes about 5 minutes on one core."""
 
 
 def _task_options() -> dict[str, tuple[str, str, Option]]:
