@@ -30,7 +30,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from bitcomm.train.recipes import DEFAULT_RECIPE
+from bitcomm.learn.recipes import DEFAULT_RECIPE
 
 RUNGS = (("2x", 2.0), ("1.15x", 1.15))
 GREEDY_RUNG = ("greedy 1.05x", 1.05)
@@ -48,9 +48,9 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
     import torch
 
     from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-    from bitcomm.evaluation import evaluate_checkpoint
-    from bitcomm.train.config import make_train_config
-    from bitcomm.train.run import train
+    from bitcomm.learn.config import make_train_config
+    from bitcomm.learn.run import train
+    from bitcomm.policies.evaluation import evaluate_checkpoint
 
     torch.set_num_threads(args["threads"])
     task = TaskConfig(EnvConfig(size=args["size"]), ChannelConfig(bits=args["bits"]))
@@ -147,10 +147,10 @@ def _solve_star(item: tuple[dict[str, Any], int]) -> dict[str, Any]:
 
 
 def main() -> None:
-    from bitcomm.commands.learning_flags import learning_options
     from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
     from bitcomm.errors import ConfigError, check_int, check_number
-    from bitcomm.train.config import make_train_config
+    from bitcomm.learn.config import make_train_config
+    from bitcomm.learn.options import learning_options
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--recipe", default=DEFAULT_RECIPE)

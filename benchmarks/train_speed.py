@@ -1,6 +1,6 @@
 """Training throughput: agent-steps per second, learning included, for each mode and recipe.
 
-Runs the real trainer (`bitcomm.train.run.train`) on the default task with the default networks
+Runs the real trainer (`bitcomm.learn.run.train`) on the default task with the default networks
 into a temporary folder, and reads `metrics.csv`: throughput is measured over the batches after the
 warm-up ones (agent-steps played / wall seconds between those rows). torch uses `--threads` (2) threads in
 sync mode; in a3c mode each of the W workers uses 1. On a machine where another process keeps a core
@@ -31,8 +31,8 @@ import torch
 
 from bitcomm.config import TaskConfig
 from bitcomm.errors import ConfigError, check_int
-from bitcomm.train.config import RECIPES, make_train_config
-from bitcomm.train.run import train
+from bitcomm.learn.config import RECIPES, make_train_config
+from bitcomm.learn.run import train
 
 
 def measure(

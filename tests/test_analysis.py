@@ -9,8 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bitcomm.agent_policies import OracleAgent, RandomAgent
-from bitcomm.analysis import (
+from bitcomm.cli import main
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.policies.agent_policies import OracleAgent, RandomAgent
+from bitcomm.studies.analysis import (
     analyze_samples,
     bit_maps,
     channel_capacity,
@@ -19,8 +21,6 @@ from bitcomm.analysis import (
     fit_lookup_decoder,
     mutual_information,
 )
-from bitcomm.cli import main
-from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
 
 def test_estimators_on_hand_values() -> None:

@@ -282,6 +282,6 @@ def test_help_is_fast_and_imports_no_torch() -> None:
 
 def test_eval_batch_matches_the_evaluator() -> None:
     from bitcomm.commands.flags import EVAL_BATCH
-    from bitcomm.evaluation import EVAL_CHUNK
+    from bitcomm.policies.evaluation import EVAL_CHUNK
 
     assert EVAL_BATCH == EVAL_CHUNK

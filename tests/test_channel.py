@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from bitcomm.channel.core import Channel, bits_to_index, bits_to_onehot, index_to_bits, index_to_onehot
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.envs.channel import Channel, bits_to_index, bits_to_onehot, index_to_bits, index_to_onehot
 from bitcomm.envs.vec import VecGoalExchange
 
 

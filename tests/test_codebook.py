@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 import torch
 
+from bitcomm.channel.core import bits_to_index, index_to_bits
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.envs.channel import bits_to_index, index_to_bits
-from bitcomm.heads import make_head
-from bitcomm.networks import ModelConfig, PolicyNet
-from bitcomm.rollout import Collector
-from bitcomm.train.codebook import CodeBook, greedy_matching
-from bitcomm.train.config import make_train_config
-from bitcomm.train.learner import Learner
+from bitcomm.learn.codebook import CodeBook, greedy_matching
+from bitcomm.learn.config import make_train_config
+from bitcomm.learn.learner import Learner
+from bitcomm.learn.rollout import Collector
+from bitcomm.policies.heads import make_head
+from bitcomm.policies.networks import ModelConfig, PolicyNet
 
 
 def test_matching_gives_each_row_its_best_free_column_most_confident_first():

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from bitcomm.cli import main
-from bitcomm.compare import CHOICES, CompareConfig, Curve, execute, first_below, plan
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
+from bitcomm.studies.compare import CHOICES, CompareConfig, Curve, execute, first_below, plan
 
 TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
         "--eval-episodes", "50"]  # fmt: skip

@@ -14,12 +14,12 @@ import pytest
 import torch
 from torch import nn
 
+from bitcomm.channel.core import bits_to_index
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.envs.channel import bits_to_index
-from bitcomm.estimators import Advantages, EstimatorBatch, get_estimator
-from bitcomm.rollout import Collector, Rollout
-from bitcomm.train.config import make_train_config
-from bitcomm.train.learner import Learner
+from bitcomm.learn.config import make_train_config
+from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
+from bitcomm.learn.learner import Learner
+from bitcomm.learn.rollout import Collector, Rollout
 
 BITS = 2
 TWO = TaskConfig(EnvConfig(size=4, max_steps=12), ChannelConfig(bits=BITS))

@@ -20,9 +20,9 @@ from bitcomm.deploy import world as world_module
 from bitcomm.deploy.protocol import pack_datagram, unpack_datagram
 from bitcomm.envs.core import GoalExchangeCore
 from bitcomm.envs.vec import VecGoalExchange
-from bitcomm.evaluation import evaluate, run_first_episodes
-from bitcomm.policies import OraclePolicy
-from bitcomm.policy_source import PolicySource
+from bitcomm.policies.evaluation import evaluate, run_first_episodes
+from bitcomm.policies.reference import OraclePolicy
+from bitcomm.policies.source import PolicySource
 
 TINY = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
 ORACLE = PolicySource("oracle")

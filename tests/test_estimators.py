@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from bitcomm.errors import ConfigError
-from bitcomm.estimators import (
+from bitcomm.learn.estimators import (
     ESTIMATORS,
     Advantages,
     EstimatorBatch,

@@ -17,12 +17,12 @@ import torch
 from bitcomm.checkpoint import save_checkpoint
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.controller import Controller
 from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.errors import ConfigError
-from bitcomm.networks import PolicyNet
-from bitcomm.onnx_export import export_onnx
-from bitcomm.onnx_policy import OnnxController, sidecar_path
+from bitcomm.policies.controller import Controller
+from bitcomm.policies.networks import PolicyNet
+from bitcomm.policies.onnx_export import export_onnx
+from bitcomm.policies.onnx_policy import OnnxController, sidecar_path
 
 TINY = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
 # agent 0 hears agents 1 and 2: two input slots
@@ -34,7 +34,7 @@ ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 
 def make_checkpoint(folder: Path, task: TaskConfig = TINY, messages: str = "bitwise", coords: bool = False) -> Path:
     """A run folder with one checkpoint of an untrained policy, written by the trainer's own writer."""
-    from bitcomm.train.config import make_train_config
+    from bitcomm.learn.config import make_train_config
 
     cfg = make_train_config("reinforced", task, messages=messages, coords=coords)
     torch.manual_seed(0)
@@ -134,7 +134,7 @@ def test_the_file_carries_its_card(exported: tuple[Path, Path]) -> None:
 
 def test_the_runtime_needs_no_torch(exported: tuple[Path, Path]) -> None:
     code = (
-        "import sys, numpy as np; from bitcomm.onnx_policy import OnnxController; "
+        "import sys, numpy as np; from bitcomm.policies.onnx_policy import OnnxController; "
         f"c = OnnxController.load({str(exported[1])!r}); "
         "print(c.act(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 4), np.uint8))[1].shape, 'torch' in sys.modules)"
     )
@@ -157,7 +157,7 @@ def test_cli_exports_a_run_folder(exported: tuple[Path, Path], tmp_path: Path, c
 
 
 def test_deploy_runs_the_exported_policy(exported: tuple[Path, Path]) -> None:
-    from bitcomm.evaluation import evaluate_checkpoint
+    from bitcomm.policies.evaluation import evaluate_checkpoint
 
     run, out = exported
     cmd = [sys.executable, "-m", "bitcomm.cli", "deploy", "--onnx", str(out), "--greedy", "--episodes", "12",

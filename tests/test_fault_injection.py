@@ -38,8 +38,8 @@ def refused(capsys: pytest.CaptureFixture[str], argv: list[str], naming: str) ->
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from bitcomm.train.config import make_train_config
-    from bitcomm.train.run import train
+    from bitcomm.learn.config import make_train_config
+    from bitcomm.learn.run import train
 
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("trained") / "run"
@@ -186,8 +186,8 @@ def test_a_torn_last_metrics_row_is_dropped_on_resume(run: Path, capsys) -> None
 def exported(trained: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     pytest.importorskip("onnx")
     pytest.importorskip("onnxruntime")
-    from bitcomm.controller import Controller
-    from bitcomm.onnx_export import export_onnx
+    from bitcomm.policies.controller import Controller
+    from bitcomm.policies.onnx_export import export_onnx
 
     out = tmp_path_factory.mktemp("onnx") / "policy.onnx"
     export_onnx(Controller.load(trained), out)
@@ -197,7 +197,7 @@ def exported(trained: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _card(path: Path, change: Callable[[dict], object]) -> None:
     import onnx
 
-    from bitcomm.onnx_policy import METADATA_KEY
+    from bitcomm.policies.onnx_policy import METADATA_KEY
 
     model = onnx.load(str(path))
     for prop in model.metadata_props:
@@ -270,7 +270,7 @@ def test_the_control_port_ignores_and_counts_malformed_lines() -> None:
 def test_strangers_on_the_control_port_do_not_stop_a_deploy(monkeypatch: pytest.MonkeyPatch) -> None:
     from bitcomm.deploy import run_deploy
     from bitcomm.deploy import world as world_module
-    from bitcomm.policy_source import PolicySource
+    from bitcomm.policies.source import PolicySource
 
     strangers: list[socket.socket] = []
     hellos = [b"[1]\n", b"not json\n", b'{"agent": 0, "udp_port": 9}\n', b'{"agent": 0, "token": "guess"}\n']

@@ -15,9 +15,9 @@ from pathlib import Path
 import torch
 
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.evaluation import EvalResult, evaluate_checkpoint
-from bitcomm.train.config import make_train_config
-from bitcomm.train.run import train
+from bitcomm.learn.config import make_train_config
+from bitcomm.learn.run import train
+from bitcomm.policies.evaluation import EvalResult, evaluate_checkpoint
 
 EPISODES = 4096
 

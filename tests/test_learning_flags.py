@@ -9,10 +9,11 @@ import typing
 
 import pytest
 
-from bitcomm.commands.learning_flags import STRUCTURAL, add_learning_flags, learning_options, learning_overrides
+from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
 from bitcomm.errors import ConfigError
-from bitcomm.networks import ModelConfig
-from bitcomm.train.config import RECIPES, TrainConfig, make_train_config
+from bitcomm.learn.config import RECIPES, TrainConfig, make_train_config
+from bitcomm.learn.options import STRUCTURAL, learning_options
+from bitcomm.policies.networks import ModelConfig
 
 
 def plain_fields(cls: type) -> dict[str, type]:

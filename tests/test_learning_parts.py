@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 import torch
 
+from bitcomm.channel.core import bits_to_index
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.envs.channel import bits_to_index
 from bitcomm.errors import ConfigError
-from bitcomm.heads import BitwiseHead, OneHotHead, make_head
-from bitcomm.networks import CriticNet, ModelConfig, PolicyNet
-from bitcomm.rollout import Collector
-from bitcomm.train.config import make_train_config
-from bitcomm.train.learner import Learner
+from bitcomm.learn.config import make_train_config
+from bitcomm.learn.learner import Learner
+from bitcomm.learn.rollout import Collector
+from bitcomm.policies.heads import BitwiseHead, OneHotHead, make_head
+from bitcomm.policies.networks import CriticNet, ModelConfig, PolicyNet
 
 TINY = TaskConfig(EnvConfig(size=4, max_steps=20), ChannelConfig(bits=3))
 

@@ -14,7 +14,7 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.envs import goal_exchange_v0
 from bitcomm.envs.vec import Observation, VecGoalExchange
 from bitcomm.errors import ConfigError
-from bitcomm.policies import OraclePolicy
+from bitcomm.policies.reference import OraclePolicy
 
 CONFIGS: dict[str, dict[str, Any]] = {
     "default": {},

@@ -8,14 +8,14 @@ import argparse
 import numpy as np
 import pytest
 
-from bitcomm.agent_policies import BatchedPolicy, ControllerAgent, OracleAgent
 from bitcomm.commands.common import add_task_flags
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.errors import ConfigError
-from bitcomm.evaluation import evaluate
-from bitcomm.policies import OraclePolicy
-from bitcomm.policy_source import (
+from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent, OracleAgent
+from bitcomm.policies.evaluation import evaluate
+from bitcomm.policies.reference import OraclePolicy
+from bitcomm.policies.source import (
     PolicySource,
     add_policy_flags,
     given_task_flags,

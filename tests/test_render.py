@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from bitcomm.agent_policies import OracleAgent, RandomAgent
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.envs.vec import VecGoalExchange
-from bitcomm.policies import OraclePolicy
-from bitcomm.render import record_episode, render_frames, save_gif
+from bitcomm.policies.agent_policies import OracleAgent, RandomAgent
+from bitcomm.policies.reference import OraclePolicy
+from bitcomm.studies.render import record_episode, render_frames, save_gif
 
 TINY = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
 
@@ -70,7 +70,7 @@ def test_cli_writes_gif_and_png_frames(tmp_path: Path) -> None:
 
 def test_run_without_controller_is_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from bitcomm.cli import main
-    from bitcomm.policy_source import LEARNED_UNAVAILABLE
+    from bitcomm.policies.source import LEARNED_UNAVAILABLE
 
     try:
         import bitcomm

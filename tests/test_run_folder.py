@@ -62,7 +62,7 @@ def refused(capsys: pytest.CaptureFixture[str], *argv: str, naming: str) -> str:
 
 
 def tiny_config(**kw):
-    from bitcomm.train.config import make_train_config
+    from bitcomm.learn.config import make_train_config
 
     task = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
     return make_train_config(task=task, **{"num_envs": 16, "episodes": 48, "checkpoint_seconds": 0.0, **kw})
@@ -71,7 +71,7 @@ def tiny_config(**kw):
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A finished run of 3 batches, a checkpoint after each; tests tamper with copies of it."""
-    from bitcomm.train.run import train
+    from bitcomm.learn.run import train
 
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("trained") / "run"
@@ -135,7 +135,7 @@ def test_the_lock_is_reentrant_in_one_process_and_released(tmp_path: Path) -> No
 def test_a_diverging_run_stops_and_keeps_its_last_good_checkpoint(
     tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from bitcomm.train.learner import Learner
+    from bitcomm.learn.learner import Learner
 
     real_update, calls = Learner.update, []
 
@@ -322,7 +322,7 @@ def test_keep_checkpoints_is_checked(capsys, tmp_path: Path) -> None:
 
 # ---------------------------------------------------------------------------------------------- compare
 def test_compare_runs_hold_the_lock_and_refuse_a_tampered_latest(run: Path, tmp_path: Path) -> None:
-    from bitcomm.compare import CHOICES, Configuration, Run, execute, run_status
+    from bitcomm.studies.compare import CHOICES, Configuration, Run, execute, run_status
 
     study_run = Run(Configuration(CHOICES[0]), 0, tiny_config(), run)
     holder = subprocess.Popen([sys.executable, "-c", HOLD, str(run)], stdout=subprocess.PIPE, text=True, env=ENV)

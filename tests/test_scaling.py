@@ -15,8 +15,8 @@ import pytest
 
 from bitcomm.cli import main
 from bitcomm.errors import ConfigError
-from bitcomm.networks import ModelConfig
-from bitcomm.scaling import ScalingConfig, ScalingRow, bits_for, learning_run, parse_sizes
+from bitcomm.policies.networks import ModelConfig
+from bitcomm.studies.scaling import ScalingConfig, ScalingRow, bits_for, learning_run, parse_sizes
 
 
 def test_bits_name_every_cell() -> None:
@@ -101,8 +101,8 @@ def test_cli_defaults_are_the_config_defaults() -> None:
     """The command writes its defaults and choices out (to keep torch out of CLI start-up); they must agree."""
     from bitcomm.cli import build_parser
     from bitcomm.commands.scaling import scaling_config
-    from bitcomm.estimators import ESTIMATORS
-    from bitcomm.train.config import RECIPES
+    from bitcomm.learn.config import RECIPES
+    from bitcomm.learn.estimators import ESTIMATORS
 
     parser = build_parser()
     assert scaling_config(parser.parse_args(["scaling"])) == ScalingConfig()

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bitcomm.stats import mean_interval, t975
+from bitcomm.studies.stats import mean_interval, t975
 
 
 def test_t_quantiles() -> None:

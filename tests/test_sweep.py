@@ -10,8 +10,8 @@ import pytest
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
-from bitcomm.policy_source import PolicySource
-from bitcomm.sweep import parse_param, run_sweep, with_param
+from bitcomm.policies.source import PolicySource
+from bitcomm.studies.sweep import parse_param, run_sweep, with_param
 
 TINY = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
 

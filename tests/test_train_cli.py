@@ -35,7 +35,7 @@ def bitcomm(*args: str, check: bool = True) -> subprocess.CompletedProcess:
 
 
 def tiny_config(**kw):
-    from bitcomm.train.config import make_train_config
+    from bitcomm.learn.config import make_train_config
 
     task = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
     return make_train_config(
@@ -84,7 +84,7 @@ def test_train_writes_run_folder(run_dir: Path) -> None:
 
 
 def test_sync_runs_are_reproducible(tmp_path: Path) -> None:
-    from bitcomm.train.run import train
+    from bitcomm.learn.run import train
 
     torch.set_num_threads(1)
     for name in ("a", "b"):
@@ -115,8 +115,8 @@ def test_sync_runs_are_reproducible(tmp_path: Path) -> None:
 
 def test_eval_json_and_controller(run_dir: Path) -> None:
     from bitcomm import Controller
-    from bitcomm.agent import NetworkPolicy
-    from bitcomm.evaluation import evaluate
+    from bitcomm.policies.agent import NetworkPolicy
+    from bitcomm.policies.evaluation import evaluate
 
     res = bitcomm("eval", str(run_dir), "--episodes", "100", "--seed", "3", "--greedy", "--json")
     got = json.loads(res.stdout.strip().splitlines()[-1])
@@ -149,8 +149,8 @@ def test_eval_json_and_controller(run_dir: Path) -> None:
 
 def test_controller_sampling_matches_eval(run_dir: Path) -> None:
     from bitcomm import Controller
-    from bitcomm.agent_policies import BatchedPolicy, ControllerAgent
-    from bitcomm.evaluation import evaluate
+    from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
+    from bitcomm.policies.evaluation import evaluate
 
     res = bitcomm("eval", str(run_dir), "--episodes", "100", "--seed", "5", "--json")
     got = json.loads(res.stdout.strip().splitlines()[-1])
@@ -190,7 +190,7 @@ def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.C
 
 
 def test_a3c_trains_shared_weights_and_resumes(tmp_path: Path) -> None:
-    from bitcomm.train.learner import Learner
+    from bitcomm.learn.learner import Learner
 
     out = tmp_path / "a3c"
     args = ["train", *TINY, "--mode", "a3c", "--workers", "2", "--quiet", "--eval-episodes", "0", "--out", str(out)]

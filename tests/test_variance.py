@@ -17,12 +17,12 @@ import torch
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
-from bitcomm.estimators import Advantages, policy_gradient_loss
-from bitcomm.rollout import Collector
-from bitcomm.train.config import make_train_config
-from bitcomm.train.learner import Learner
-from bitcomm.train.run import train
-from bitcomm.variance import (
+from bitcomm.learn.config import make_train_config
+from bitcomm.learn.estimators import Advantages, policy_gradient_loss
+from bitcomm.learn.learner import Learner
+from bitcomm.learn.rollout import Collector
+from bitcomm.learn.run import train
+from bitcomm.studies.variance import (
     PARTS,
     Moments,
     VarianceConfig,

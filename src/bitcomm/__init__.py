@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING, Any
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
 if TYPE_CHECKING:
-    from bitcomm.controller import Controller
-    from bitcomm.evaluation import evaluate
+    from bitcomm.policies.controller import Controller
+    from bitcomm.policies.evaluation import evaluate
 
 try:
     from importlib.metadata import PackageNotFoundError, version
@@ -22,7 +22,7 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 
 __all__ = ["ChannelConfig", "Controller", "EnvConfig", "TaskConfig", "evaluate", "__version__"]
 
-_LAZY = {"Controller": "bitcomm.controller", "evaluate": "bitcomm.evaluation"}
+_LAZY = {"Controller": "bitcomm.policies.controller", "evaluate": "bitcomm.policies.evaluation"}
 
 
 def __getattr__(name: str) -> Any:

@@ -1,4 +1,5 @@
-"""`bitcomm analyze [RUN]`: what each bit means and how much of the goal gets through (see `bitcomm.analysis`)."""
+"""`bitcomm analyze [RUN]`: what each bit means and how much of the goal gets through
+(see `bitcomm.studies.analysis`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from pathlib import Path
 
 from bitcomm.commands.common import add_task_flags
 from bitcomm.commands.flags import MAX_BATCH, MAX_SAMPLES, SEED, check_play, integer, out_dir
-from bitcomm.policy_source import add_policy_flags, source_from_args
+from bitcomm.policies.source import add_policy_flags, source_from_args
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -39,7 +40,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.analysis import analyze_samples, bit_maps, collect_messages, markdown_summary, save_heatmaps
+    from bitcomm.studies.analysis import analyze_samples, bit_maps, collect_messages, markdown_summary, save_heatmaps
 
     source = source_from_args(args)
     task = source.task_from_args(args)

@@ -6,8 +6,8 @@ import argparse
 
 from bitcomm.commands.common import add_task_flags, print_result, task_from_args
 from bitcomm.commands.flags import EVAL_EPISODES, SEED, check_eval
-from bitcomm.evaluation import evaluate
-from bitcomm.policies import REFERENCE_POLICIES, make_reference_policy
+from bitcomm.policies.evaluation import evaluate
+from bitcomm.policies.reference import REFERENCE_POLICIES, make_reference_policy
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

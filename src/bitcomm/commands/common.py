@@ -11,7 +11,7 @@ from bitcomm.commands.flags import integer, number
 from bitcomm.config import MAX_AGENTS, MAX_SIZE, MAX_STEPS, ChannelConfig, EnvConfig, TaskConfig
 
 if TYPE_CHECKING:
-    from bitcomm.evaluation import EvalResult
+    from bitcomm.policies.evaluation import EvalResult
 
 PROBABILITY = number(0.0, 1.0)
 

@@ -1,4 +1,4 @@
-"""`bitcomm compare`: the four techniques and a no-communication baseline over seeds (see `bitcomm.compare`).
+"""`bitcomm compare`: the four techniques and a no-communication baseline over seeds (see `bitcomm.studies.compare`).
 
 Task flags and learning flags are those of `bitcomm train` and apply to every run; `--vary NAME=V1,V2`
 (repeatable) makes one configuration per technique and value. Running the same command again skips
@@ -25,9 +25,9 @@ from bitcomm.commands.flags import (
     out_dir,
 )
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
-from bitcomm.compare import CHOICES, STUDY_EPISODES, CompareConfig, parse_techniques, parse_vary, run_compare
 from bitcomm.errors import bad_value
-from bitcomm.train.recipes import DEFAULT_RECIPE, RECIPES
+from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
+from bitcomm.studies.compare import CHOICES, STUDY_EPISODES, CompareConfig, parse_techniques, parse_vary, run_compare
 
 MAX_SEEDS = 1000
 """Seeds per configuration: 1000 runs of each is already months of CPU (and keeps --eval-seed's default free)."""
@@ -90,7 +90,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def check_study(cfg: CompareConfig) -> None:
     """Every run's config built (a bad learning option or varied value fails now) and its memory checked,
     `jobs` of them at once, before the first run starts."""
-    from bitcomm.compare import plan
+    from bitcomm.studies.compare import plan
 
     runs = plan(cfg)
     for r in runs:
@@ -99,7 +99,7 @@ def check_study(cfg: CompareConfig) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.compare import table_markdown
+    from bitcomm.studies.compare import table_markdown
 
     vary = dict(parse_vary(text) for text in args.vary)
     if len(vary) != len(args.vary):

@@ -10,11 +10,11 @@ from typing import TYPE_CHECKING
 
 from bitcomm.commands.common import add_task_flags
 from bitcomm.commands.flags import MAX_DEADLINE_MS, MAX_SECONDS, SEED, check_eval, integer, number
-from bitcomm.policy_source import add_policy_flags, source_from_args
+from bitcomm.policies.source import add_policy_flags, source_from_args
 
 if TYPE_CHECKING:
     from bitcomm.deploy import EpisodeOutcome
-    from bitcomm.evaluation import EvalResult
+    from bitcomm.policies.evaluation import EvalResult
 
 MAX_DEPLOY_EPISODES = 100_000
 """Each deployed episode is a few hundred UDP round trips: 10^5 episodes is already hours."""
@@ -62,9 +62,9 @@ def _line(result: EvalResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.agent_policies import BatchedPolicy
     from bitcomm.deploy import DeployError, run_deploy
-    from bitcomm.evaluation import evaluate
+    from bitcomm.policies.agent_policies import BatchedPolicy
+    from bitcomm.policies.evaluation import evaluate
 
     episodes = args.episodes
     source = source_from_args(args)

@@ -14,7 +14,7 @@ from bitcomm.commands.flags import EVAL_EPISODES, SEED, check_eval
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    from bitcomm.policy_source import mark_task_defaults
+    from bitcomm.policies.source import mark_task_defaults
 
     p = sub.add_parser("eval", help="evaluate a trained policy (run folder or checkpoint file)")
     p.add_argument("run_path", metavar="RUN_OR_CHECKPOINT", help="run folder or .safetensors file")
@@ -28,10 +28,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.agent_policies import BatchedPolicy, ControllerAgent
-    from bitcomm.controller import Controller
-    from bitcomm.evaluation import evaluate
-    from bitcomm.policy_source import resolve_task
+    from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
+    from bitcomm.policies.controller import Controller
+    from bitcomm.policies.evaluation import evaluate
+    from bitcomm.policies.source import resolve_task
 
     controller = Controller.load(args.run_path, seed=args.seed)
     task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", strict=True)

@@ -2,7 +2,8 @@
 
 RUN is a run folder or a checkpoint file, as for `bitcomm eval`. FILE gets the graph (inputs `planes`,
 `received`; outputs `move_logits`, `message_logits`; dynamic batch axis) and `FILE.json` its card;
-`bitcomm deploy --onnx FILE` and `bitcomm.onnx_policy.OnnxController` run it (see `bitcomm.onnx_export`).
+`bitcomm deploy --onnx FILE` and `bitcomm.policies.onnx_policy.OnnxController` run it
+(see `bitcomm.policies.onnx_export`).
 """
 
 from __future__ import annotations
@@ -32,9 +33,9 @@ def _check_output(path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.controller import Controller
-    from bitcomm.onnx_export import export_onnx
-    from bitcomm.onnx_policy import require, sidecar_path
+    from bitcomm.policies.controller import Controller
+    from bitcomm.policies.onnx_export import export_onnx
+    from bitcomm.policies.onnx_policy import require, sidecar_path
 
     out = Path(args.onnx)
     _check_output(out)

@@ -21,7 +21,7 @@ from bitcomm.errors import bad_value
 
 if TYPE_CHECKING:
     from bitcomm.config import TaskConfig
-    from bitcomm.train.config import TrainConfig
+    from bitcomm.learn.config import TrainConfig
 
 MAX_SEED = 2**32 - 1
 """Seeds feed numpy's SeedSequence and torch.manual_seed; 32 bits is what both take everywhere."""
@@ -46,7 +46,7 @@ MAX_SECONDS = 7 * 24 * 3600.0
 MAX_DEADLINE_MS = 60_000.0
 """`deploy --deadline-ms`: a step waits at most a minute for its messages."""
 EVAL_BATCH = 4096
-"""Episodes evaluation plays side by side (`bitcomm.evaluation.EVAL_CHUNK`, held equal by a test)."""
+"""Episodes evaluation plays side by side (`bitcomm.policies.evaluation.EVAL_CHUNK`, held equal by a test)."""
 BYTES_PER_GB = 1 << 30
 
 

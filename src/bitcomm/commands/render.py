@@ -1,4 +1,4 @@
-"""`bitcomm render [RUN] --out episode.gif`: an animation of one episode (see `bitcomm.render`)."""
+"""`bitcomm render [RUN] --out episode.gif`: an animation of one episode (see `bitcomm.studies.render`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import argparse
 from bitcomm.commands.common import add_task_flags
 from bitcomm.commands.flags import MAX_FPS, MAX_FRAMES, SEED, number, out_dir, out_file
 from bitcomm.errors import bad_value
-from bitcomm.policy_source import add_policy_flags, source_from_args
+from bitcomm.policies.source import add_policy_flags, source_from_args
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -37,7 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.render import record_episode, render_frames, save_gif, save_png_frames
+    from bitcomm.studies.render import record_episode, render_frames, save_gif, save_png_frames
 
     source = source_from_args(args)
     task = source.task_from_args(args)

@@ -1,4 +1,4 @@
-"""`bitcomm scaling`: bitwise against one-hot messages as the grid grows (see `bitcomm.scaling`)."""
+"""`bitcomm scaling`: bitwise against one-hot messages as the grid grows (see `bitcomm.studies.scaling`)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from bitcomm.commands.flags import MAX_BATCH, MAX_REPEATS, MAX_TRAIN_EPISODES, SEED, integer, number, out_dir
-from bitcomm.train.recipes import DEFAULT_RECIPE, RECIPES
+from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
 
 if TYPE_CHECKING:
-    from bitcomm.scaling import ScalingConfig
+    from bitcomm.studies.scaling import ScalingConfig
 
 
 MAX_SCALING_SIZE = 128
@@ -35,7 +35,7 @@ def sizes(text: str) -> str:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    # defaults written out (the same as ScalingConfig's, checked by a test): importing bitcomm.scaling
+    # defaults written out (the same as ScalingConfig's, checked by a test): importing bitcomm.studies.scaling
     # here would load torch for every command of the CLI
     p = sub.add_parser(
         "scaling",
@@ -97,7 +97,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def scaling_config(args: argparse.Namespace) -> ScalingConfig:
-    from bitcomm.scaling import ScalingConfig, parse_sizes
+    from bitcomm.studies.scaling import ScalingConfig, parse_sizes
 
     return ScalingConfig(
         sizes=parse_sizes(args.sizes),
@@ -114,7 +114,7 @@ def scaling_config(args: argparse.Namespace) -> ScalingConfig:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.scaling import markdown_table, plot_curves, plot_scaling, run_scaling, write_csv
+    from bitcomm.studies.scaling import markdown_table, plot_curves, plot_scaling, run_scaling, write_csv
 
     scfg = scaling_config(args)
     out = Path(args.out)

@@ -1,4 +1,5 @@
-"""`bitcomm sweep [RUN] [--policy oracle]... [--param NAME=V1,V2,...]...`: robustness curves (see `bitcomm.sweep`)."""
+"""`bitcomm sweep [RUN] [--policy oracle]... [--param NAME=V1,V2,...]...`: robustness curves
+(see `bitcomm.studies.sweep`)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ from pathlib import Path
 from bitcomm.commands.common import add_task_flags
 from bitcomm.commands.flags import EVAL_EPISODES, SEED, check_eval, out_dir
 from bitcomm.config import TaskConfig
-from bitcomm.policy_source import add_policy_flags, sources_from_args
-from bitcomm.sweep import DEFAULT_SWEEP, SWEEPABLE, parse_param, plot_sweep, run_sweep, with_param, write_csv
+from bitcomm.policies.source import add_policy_flags, sources_from_args
+from bitcomm.studies.sweep import DEFAULT_SWEEP, SWEEPABLE, parse_param, plot_sweep, run_sweep, with_param, write_csv
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

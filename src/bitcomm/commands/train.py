@@ -1,4 +1,4 @@
-"""`bitcomm train`: learn to act and to talk (SPEC section 5); writes a run folder (see bitcomm.train.run).
+"""`bitcomm train`: learn to act and to talk (SPEC section 5); writes a run folder (see bitcomm.learn.run_folder).
 
 Learning options (`bitcomm.commands.learning_flags`, one per plain field of TrainConfig and ModelConfig)
 default to None, meaning "the recipe's value" (`--recipe reinforced|supervised|paper`); a flag typed on the command line
@@ -15,7 +15,7 @@ from pathlib import Path
 from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.flags import MAX_EVAL_EPISODES, MAX_JOBS, MAX_TRAIN_EPISODES, SEED, check_train, integer, out_dir
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
-from bitcomm.train.recipes import DEFAULT_RECIPE, RECIPES
+from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -69,8 +69,9 @@ def default_threads() -> int | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.train.config import make_train_config
-    from bitcomm.train.run import resume_config, train
+    from bitcomm.learn.config import make_train_config
+    from bitcomm.learn.run import train
+    from bitcomm.learn.run_folder import resume_config
 
     out = args.out or Path("runs") / f"{args.recipe}-{args.estimator}-{args.messages}-s{args.seed}"
     if args.resume:
@@ -98,10 +99,10 @@ def run(args: argparse.Namespace) -> int:
     checkpoint = train(cfg, out, resume=args.resume, progress=not args.quiet)
     print(f"checkpoint: {checkpoint}")
     if args.eval_episodes:
-        from bitcomm.agent_policies import BatchedPolicy, ControllerAgent
         from bitcomm.commands.common import print_result
-        from bitcomm.controller import Controller
-        from bitcomm.evaluation import evaluate
+        from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
+        from bitcomm.policies.controller import Controller
+        from bitcomm.policies.evaluation import evaluate
 
         controller = Controller.load(checkpoint, seed=cfg.seed)
         result = evaluate(BatchedPolicy(ControllerAgent(controller)), cfg.task, args.eval_episodes, cfg.seed)

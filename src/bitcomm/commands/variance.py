@@ -1,5 +1,5 @@
 """`bitcomm variance RUN_OR_CHECKPOINT...`: the two estimators' gradient variance at fixed policies (see
-`bitcomm.variance`), at the stages of a run kept in its `checkpoints/` folder."""
+`bitcomm.studies.variance`), at the stages of a run kept in its `checkpoints/` folder."""
 
 from __future__ import annotations
 
@@ -13,13 +13,13 @@ from bitcomm.commands.common import add_task_flags
 from bitcomm.commands.flags import MAX_BATCH, MAX_REPEATS, SEED, check_play, integer, number, out_dir
 
 if TYPE_CHECKING:
-    from bitcomm.variance import VarianceConfig
+    from bitcomm.studies.variance import VarianceConfig
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    # defaults written out (the same as VarianceConfig's, checked by a test): importing bitcomm.variance
+    # defaults written out (the same as VarianceConfig's, checked by a test): importing bitcomm.studies.variance
     # here would load torch for every command of the CLI
-    from bitcomm.policy_source import mark_task_defaults
+    from bitcomm.policies.source import mark_task_defaults
 
     p = sub.add_parser(
         "variance",
@@ -71,7 +71,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def variance_config(args: argparse.Namespace) -> VarianceConfig:
-    from bitcomm.variance import VarianceConfig
+    from bitcomm.studies.variance import VarianceConfig
 
     return VarianceConfig(
         batches=args.batches,
@@ -84,8 +84,8 @@ def variance_config(args: argparse.Namespace) -> VarianceConfig:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.policy_source import resolve_task
-    from bitcomm.variance import (
+    from bitcomm.policies.source import resolve_task
+    from bitcomm.studies.variance import (
         load_stage,
         markdown_table,
         measure_stage,

@@ -23,7 +23,7 @@ import numpy as np
 
 from bitcomm.config import TaskConfig
 from bitcomm.deploy.protocol import LineSocket, PeerGone, decode_array, pack_datagram, unpack_datagram
-from bitcomm.policy_source import PolicySource
+from bitcomm.policies.source import PolicySource
 
 
 class Inbox:

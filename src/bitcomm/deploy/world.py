@@ -5,7 +5,7 @@ process per agent (`python -m bitcomm.deploy.agent`), and steps the episodes in 
 tells every agent its observation planes and the step index over TCP, collects their moves, and
 applies them. It never carries a message: agents exchange those among themselves over UDP.
 
-Episodes are those of `bitcomm.evaluation.evaluate` with the same seed (the same starts and goals), so
+Episodes are those of `bitcomm.policies.evaluation.evaluate` with the same seed (the same starts and goals), so
 the deployed policy and the simulated one face the same episode set. Actuation noise draws differ
 (the world steps one episode at a time), and so do the channel's.
 
@@ -34,8 +34,8 @@ import numpy as np
 from bitcomm.config import TaskConfig
 from bitcomm.deploy.protocol import LineSocket, Malformed, PeerGone, encode_array
 from bitcomm.envs.core import N_MOVES, GoalExchangeCore
-from bitcomm.evaluation import EvalResult, seeded_episode_envs
-from bitcomm.policy_source import PolicySource
+from bitcomm.policies.evaluation import EvalResult, seeded_episode_envs
+from bitcomm.policies.source import PolicySource
 
 
 class DeployError(RuntimeError):

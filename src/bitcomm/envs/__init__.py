@@ -1,7 +1,15 @@
-"""Environments: the vectorized goal-exchange core, its channel, and the PettingZoo view."""
+"""Tasks: the vectorized goal-exchange core (`core.py`, array in, array out over a batch of episodes),
+its vectorized view with the channel attached (`vec.py`), the PettingZoo `ParallelEnv`
+(`goal_exchange_v0.py`) and text rendering. The grid is one task: it provides the per-agent arrays
+the learning core speaks (see `bitcomm.learn.rollout.Rollout`).
 
+May import: `bitcomm.config`, `bitcomm.errors`, `bitcomm.channel`. (`Channel` and the bit conversions
+are re-exported here, and `bitcomm.envs.channel` still names them, for code written before the channel
+had a package of its own.)
+"""
+
+from bitcomm.channel.core import Channel, bits_to_index, bits_to_onehot, index_to_bits, index_to_onehot
 from bitcomm.envs import goal_exchange_v0
-from bitcomm.envs.channel import Channel, bits_to_index, bits_to_onehot, index_to_bits, index_to_onehot
 from bitcomm.envs.core import MOVE_NAMES, N_MOVES, FinishedEpisodes, GoalExchangeCore, StepResult
 from bitcomm.envs.vec import Observation, VecGoalExchange
 

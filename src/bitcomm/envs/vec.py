@@ -10,8 +10,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from bitcomm.channel.core import Channel
 from bitcomm.config import TaskConfig
-from bitcomm.envs.channel import Channel
 from bitcomm.envs.core import GoalExchangeCore, StepResult
 
 
@@ -27,7 +27,7 @@ class Observation(NamedTuple):
 class VecGoalExchange:
     """B self-resetting episodes of the goal-exchange task with its K-bit channel.
 
-    Stepping it by hand (what `bitcomm.rollout` and `bitcomm.evaluation` do, batched)::
+    Stepping it by hand (what `bitcomm.learn.rollout` and `bitcomm.policies.evaluation` do, batched)::
 
         env = VecGoalExchange(TaskConfig(), num_envs=8, seed=0)   # episodes already started
         obs = env.reset()                                         # or env.observe(): the same thing now

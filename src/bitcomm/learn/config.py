@@ -1,6 +1,6 @@
 """`TrainConfig`: everything a training run needs, with named recipes.
 
-A recipe is a named set of learning options (`bitcomm.train.recipes`): `reinforced` (the default,
+A recipe is a named set of learning options (`bitcomm.learn.recipes`): `reinforced` (the default,
 messages learned by reinforcement alone), `supervised` (plus auxiliary losses that teach the sender
 a protocol) and `paper` (the paper's training as written). Options that use privileged
 training-time information, or hand a policy head a target other than the return, say so below.
@@ -14,10 +14,10 @@ from typing import Any
 
 from bitcomm.config import TaskConfig
 from bitcomm.errors import bad_value, check_int, check_number, is_number
-from bitcomm.estimators import ESTIMATORS
-from bitcomm.heads import MESSAGE_HEADS
-from bitcomm.networks import ModelConfig
-from bitcomm.train.recipes import AUXILIARY, DEFAULT_RECIPE, RECIPES
+from bitcomm.learn.estimators import ESTIMATORS
+from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, RECIPES
+from bitcomm.policies.heads import MESSAGE_HEADS
+from bitcomm.policies.networks import ModelConfig
 
 MODES = ("sync", "a3c")
 
@@ -79,7 +79,7 @@ class TrainConfig:
     code_coef: float = 0.0
     """Auxiliary (`supervised` recipe): weight of a loss that trains each sender toward a code word of the goal it
     observes (its own observation, so not privileged), the words matched to goals one to one by the sender's own
-    running preference (bitcomm.train.codebook): a code with no two goals on one message, which a relaxed channel
+    running preference (bitcomm.learn.codebook): a code with no two goals on one message, which a relaxed channel
     does not find (one goal per message where 2^bits >= size * size)."""
     anneal_lr: bool = False
     """Decay every learning rate linearly to zero over the budget (`episodes`), as CleanRL's PPO does:

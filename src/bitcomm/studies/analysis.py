@@ -29,10 +29,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from bitcomm.agent_policies import AgentPolicy, BatchedPolicy
+from bitcomm.channel.core import bits_to_index
 from bitcomm.config import TaskConfig
-from bitcomm.envs.channel import bits_to_index
 from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.policies.agent_policies import AgentPolicy, BatchedPolicy
 
 
 class MessageSamples(NamedTuple):

@@ -9,8 +9,8 @@ from typing import Protocol
 
 import numpy as np
 
+from bitcomm.channel.core import bits_to_index, index_to_bits
 from bitcomm.config import TaskConfig
-from bitcomm.envs.channel import bits_to_index, index_to_bits
 from bitcomm.envs.core import N_MOVES
 from bitcomm.envs.vec import Observation
 from bitcomm.errors import bad_value

@@ -17,7 +17,7 @@ from torch import nn
 from bitcomm.config import TaskConfig
 from bitcomm.envs.core import N_MOVES
 from bitcomm.errors import bad_value, check_int
-from bitcomm.heads import MessageHead, make_head
+from bitcomm.policies.heads import MessageHead, make_head
 
 ENCODERS = ("conv", "marginals")
 

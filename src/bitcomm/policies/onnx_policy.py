@@ -6,11 +6,11 @@
 The ONNX graph is the policy network only: `planes` float32 `(N, 2, S, S)` and `received` float32
 `(N, slots, K)` bits in, `move_logits` `(N, 5)` and `message_logits` `(N, K)` (bitwise) or
 `(N, 2^K)` (onehot) out. Sampling stays outside the graph, here, drawing from the same distributions
-`bitcomm.agent.act` draws from: a move from softmax(move_logits); for bitwise messages each bit with
+`bitcomm.policies.agent.act` draws from: a move from softmax(move_logits); for bitwise messages each bit with
 probability sigmoid(logit); for onehot messages an index from softmax(message_logits), sent as its K bits
 (most significant first). What a robot needs to use the file (grid size, bits, slots, head, tensor
 names, provenance) is stored in the model's metadata under `bitcomm` and in a JSON sidecar
-(`policy.onnx.json`), both written by `bitcomm.onnx_export`.
+(`policy.onnx.json`), both written by `bitcomm.policies.onnx_export`.
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from bitcomm.agent_policies import agent_batch
+from bitcomm.channel.core import index_to_bits
 from bitcomm.config import TaskConfig
-from bitcomm.envs.channel import index_to_bits
 from bitcomm.errors import ConfigError
+from bitcomm.policies.agent_policies import agent_batch
 
 FORMAT = "bitcomm-onnx-policy"
 VERSION = 1
@@ -50,7 +50,7 @@ def sidecar_path(onnx_path: str | Path) -> Path:
     return p.with_name(p.name + ".json")
 
 
-# ---------------------------------------------------------------------- sampling, as bitcomm.agent.act
+# ---------------------------------------------------------------------- sampling, as bitcomm.policies.agent.act
 def _softmax(logits: np.ndarray) -> np.ndarray:
     e = np.exp(logits - logits.max(-1, keepdims=True))
     return e / e.sum(-1, keepdims=True)  # type: ignore[no-any-return]
@@ -64,7 +64,7 @@ def _categorical(logits: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def _message_bits(kind: str, logits: np.ndarray, bits: int, greedy: bool, rng: np.random.Generator) -> np.ndarray:
-    """`(N, K)` uint8 bits from message logits, as `bitcomm.heads` mode/sample do."""
+    """`(N, K)` uint8 bits from message logits, as `bitcomm.policies.heads` mode/sample do."""
     if kind == "bitwise":
         if greedy:
             return (logits > 0).astype(np.uint8)

@@ -1,7 +1,7 @@
 """Export a trained policy network to ONNX, for robots that run onnxruntime instead of PyTorch.
 
 The graph is `PolicyNet.forward` as `Controller` runs it (coordinate planes and the message head's
-reading of the received bits included), with a dynamic batch axis; see `bitcomm.onnx_policy` for its
+reading of the received bits included), with a dynamic batch axis; see `bitcomm.policies.onnx_policy` for its
 inputs, outputs and how to sample from them. The card a robot needs (task, head, tensor names and
 shapes, bitcomm version, source checkpoint) goes into the model's metadata and into a JSON sidecar.
 
@@ -21,9 +21,9 @@ from typing import Any
 
 import torch
 
-from bitcomm.controller import Controller
 from bitcomm.envs.core import MOVE_NAMES
-from bitcomm.onnx_policy import FORMAT, INPUTS, METADATA_KEY, OUTPUTS, VERSION, require, sidecar_path
+from bitcomm.policies.controller import Controller
+from bitcomm.policies.onnx_policy import FORMAT, INPUTS, METADATA_KEY, OUTPUTS, VERSION, require, sidecar_path
 
 OPSET = 17  # onnxruntime >= 1.14 runs it; the graph needs nothing newer
 

@@ -1,6 +1,6 @@
 """Robustness sweeps: mean episode length as one noise parameter varies, the others held at the base task.
 
-Each point is `bitcomm.evaluation.evaluate` on the same seeded episode set, so the curves differ only
+Each point is `bitcomm.policies.evaluation.evaluate` on the same seeded episode set, so the curves differ only
 by the parameter (common random numbers). Reference policies are rebuilt for each task (the oracle
 reads the message delay from it); a learned policy is the same network at every point, facing
 conditions it may not have been trained on. Results go to a CSV and a figure (PNG and SVG) with one
@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bitcomm.agent_policies import BatchedPolicy
 from bitcomm.config import TaskConfig
 from bitcomm.errors import bad_value
-from bitcomm.evaluation import EvalResult, evaluate
 from bitcomm.plotting import log_scale_suits, save_figure
-from bitcomm.policy_source import PolicySource
-from bitcomm.tables import write_rows_csv
+from bitcomm.policies.agent_policies import BatchedPolicy
+from bitcomm.policies.evaluation import EvalResult, evaluate
+from bitcomm.policies.source import PolicySource
+from bitcomm.studies.tables import write_rows_csv
 
 # parameter -> (config part, type); what a robot meets that the paper's simulator lacks, plus message delay
 SWEEPABLE: dict[str, tuple[str, type]] = {

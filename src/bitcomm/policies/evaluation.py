@@ -20,7 +20,7 @@ from bitcomm.config import TaskConfig
 from bitcomm.envs.core import StepResult
 from bitcomm.envs.vec import Observation, VecGoalExchange
 from bitcomm.errors import bad_value
-from bitcomm.policies import Policy
+from bitcomm.policies.reference import Policy
 
 EVAL_CHUNK = 4096
 
@@ -107,8 +107,8 @@ def evaluate_checkpoint(
 ) -> EvalResult:
     """`evaluate` for a trained policy (run folder or checkpoint file), acting through `Controller` as
     `bitcomm eval` and a deployed robot do; `task` defaults to the one it was trained on."""
-    from bitcomm.agent_policies import BatchedPolicy, ControllerAgent
-    from bitcomm.controller import Controller
+    from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
+    from bitcomm.policies.controller import Controller
 
     controller = Controller.load(path, seed=seed)
     policy = BatchedPolicy(ControllerAgent(controller, greedy=greedy))

@@ -1,6 +1,6 @@
 """One agent's policy, as a robot would hold it: its own planes and received bits in, a move and K bits out.
 
-The batched `Policy` of `bitcomm.policies` sees all B x n agents at once, which is what the simulator
+The batched `Policy` of `bitcomm.policies.reference` sees all B x n agents at once, which is what the simulator
 wants but not what a deployed robot has. `AgentPolicy` is the per-agent view every runtime shares:
 `bitcomm deploy` runs one per process, `bitcomm render`/`analyze`/`sweep` run it through
 `BatchedPolicy`, so the policy that is measured in the simulator is the one that is deployed.
@@ -18,12 +18,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from bitcomm.channel.core import bits_to_index, index_to_bits
 from bitcomm.config import TaskConfig
-from bitcomm.envs.channel import bits_to_index, index_to_bits
 from bitcomm.envs.core import N_MOVES
 from bitcomm.envs.vec import Observation
 from bitcomm.errors import ConfigError
-from bitcomm.policies import OraclePolicy, step_toward
+from bitcomm.policies.reference import OraclePolicy, step_toward
 
 
 class AgentPolicy(Protocol):
@@ -56,7 +56,7 @@ def agent_batch(planes: np.ndarray, received: np.ndarray, task: TaskConfig) -> t
 
 
 class OracleAgent:
-    """The oracle of `bitcomm.policies.OraclePolicy`, one agent at a time (same moves, same bits).
+    """The oracle of `bitcomm.policies.reference.OraclePolicy`, one agent at a time (same moves, same bits).
 
     It sends the goal it sees as a K-bit cell index, heads for the grid's centre until its own goal
     can have arrived (`t >= delay`), then walks to the cell the received bits name.

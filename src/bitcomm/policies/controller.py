@@ -4,7 +4,7 @@
     move, bits = controller.act(planes, received_bits)          # one agent: (2, S, S), (slots, K)
     moves, bits = controller.act(planes_batch, received_batch)  # N agents: (N, 2, S, S), (N, slots, K)
 
-It acts through `bitcomm.agent.act`, the function training rollouts and evaluation use, so what is
+It acts through `bitcomm.policies.agent.act`, the function training rollouts and evaluation use, so what is
 trained, measured and deployed cannot drift apart. Sampling is the default (how the policy was
 trained); `greedy=True` takes the most likely move and message.
 """
@@ -18,12 +18,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.agent import act
-from bitcomm.agent_policies import agent_batch
 from bitcomm.checkpoint import load_weights
 from bitcomm.config import TaskConfig
 from bitcomm.errors import ConfigError
-from bitcomm.networks import ModelConfig, PolicyNet
+from bitcomm.policies.agent import act
+from bitcomm.policies.agent_policies import agent_batch
+from bitcomm.policies.networks import ModelConfig, PolicyNet
 
 
 def model_from_dict(d: dict[str, Any]) -> ModelConfig:

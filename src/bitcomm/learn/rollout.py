@@ -12,11 +12,11 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from bitcomm.agent import act
 from bitcomm.config import TaskConfig
 from bitcomm.envs.vec import Observation, VecGoalExchange
-from bitcomm.evaluation import play_first_episodes
-from bitcomm.networks import PolicyNet
+from bitcomm.policies.agent import act
+from bitcomm.policies.evaluation import play_first_episodes
+from bitcomm.policies.networks import PolicyNet
 
 
 class Rollout(NamedTuple):

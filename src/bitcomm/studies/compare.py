@@ -36,17 +36,17 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from bitcomm.commands.learning_flags import Option, learning_options
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError, bad_value, check_int
+from bitcomm.learn.options import Option, learning_options
+from bitcomm.learn.recipes import DEFAULT_RECIPE
 from bitcomm.plotting import log_scale_suits, save_figure
-from bitcomm.policy_source import TASK_FLAGS
-from bitcomm.stats import mean_interval
-from bitcomm.train.recipes import DEFAULT_RECIPE
+from bitcomm.policies.source import TASK_FLAGS
+from bitcomm.studies.stats import mean_interval
 
 if TYPE_CHECKING:
-    from bitcomm.evaluation import EvalResult
-    from bitcomm.train.config import TrainConfig
+    from bitcomm.learn.config import TrainConfig
+    from bitcomm.policies.evaluation import EvalResult
 
 TECHNIQUES: dict[str, tuple[str, str]] = {
     "standard-onehot": ("standard", "onehot"),
@@ -208,7 +208,7 @@ def variant_task(cfg: CompareConfig, values: tuple[tuple[str, Any], ...]) -> Tas
 
 
 def train_config(cfg: CompareConfig, conf: Configuration, seed: int) -> TrainConfig:
-    from bitcomm.train.config import make_train_config
+    from bitcomm.learn.config import make_train_config
 
     task = variant_task(cfg, conf.values)
     if conf.technique == NO_COMM:
@@ -279,7 +279,7 @@ def run_status(run: Run) -> str:
 
 def _recorded_config(folder: Path) -> TrainConfig:
     """The TrainConfig in a run's config.json; fields added since it was written take their defaults."""
-    from bitcomm.train.config import TrainConfig
+    from bitcomm.learn.config import TrainConfig
 
     names = {f.name for f in dataclasses.fields(TrainConfig)}
     return TrainConfig.from_dict({k: v for k, v in _json(folder / "config.json").items() if k in names})
@@ -307,7 +307,7 @@ def read_evaluation(run: Run, episodes: int, seed: int) -> dict[str, Any] | None
 
 def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
     """Sampled and greedy play of the latest checkpoint on its own task, written to evaluation.json."""
-    from bitcomm.evaluation import evaluate_checkpoint
+    from bitcomm.policies.evaluation import evaluate_checkpoint
 
     record = {
         "checkpoint": _latest(run.folder)["checkpoint"],
@@ -331,8 +331,8 @@ def _init_worker() -> None:
 def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
     """Train (or resume) one run to its budget and evaluate it, holding the run folder's lock (one writer
     at a time, see `bitcomm.run_lock`); returns the status it was found in."""
+    from bitcomm.learn.run import train
     from bitcomm.run_lock import run_lock
-    from bitcomm.train.run import train
 
     try:
         run.folder.mkdir(parents=True, exist_ok=True)
@@ -429,8 +429,8 @@ def interval(values: list[float]) -> dict[str, Any] | None:
 
 def oracle_result(task: TaskConfig, episodes: int, seed: int) -> EvalResult | None:
     """The oracle on the evaluation set (None where it cannot play: too few bits for the grid)."""
-    from bitcomm.evaluation import evaluate
-    from bitcomm.policies import OraclePolicy
+    from bitcomm.policies.evaluation import evaluate
+    from bitcomm.policies.reference import OraclePolicy
 
     try:
         return evaluate(OraclePolicy(task), task, episodes, seed)

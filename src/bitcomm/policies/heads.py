@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from bitcomm.envs.channel import bits_to_index, index_to_bits
+from bitcomm.channel.core import bits_to_index, index_to_bits
 from bitcomm.errors import bad_value
 
 

@@ -1,7 +1,7 @@
 """One learning update from a batch of whole episodes, shared by the sync and A3C trainers.
 
 # baselines  critics evaluated once per batch (V1 for standard, V2 with masks for improved)
-# advantages the estimator chosen by name (bitcomm.estimators), optionally normalised
+# advantages the estimator chosen by name (bitcomm.learn.estimators), optionally normalised
 # update     policy loss (+ entropy, + optional goal grounding), critic MSE to Q_t, per-loss clipping
 """
 
@@ -13,11 +13,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from bitcomm.estimators import Advantages, EstimatorBatch, get_estimator, policy_gradient_loss
-from bitcomm.networks import CriticNet, PolicyNet
-from bitcomm.rollout import Rollout
-from bitcomm.train.codebook import CodeBook
-from bitcomm.train.config import TrainConfig
+from bitcomm.learn.codebook import CodeBook
+from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator, policy_gradient_loss
+from bitcomm.learn.rollout import Rollout
+from bitcomm.policies.networks import CriticNet, PolicyNet
 
 
 def clipped_policy_loss(

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from bitcomm.envs.vec import Observation
-from bitcomm.networks import PolicyNet
+from bitcomm.policies.networks import PolicyNet
 
 
 @torch.no_grad()

@@ -17,8 +17,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from bitcomm.envs.channel import index_to_bits
-from bitcomm.heads import MessageHead
+from bitcomm.channel.core import index_to_bits
+from bitcomm.policies.heads import MessageHead
 
 
 def greedy_matching(scores: torch.Tensor) -> torch.Tensor:

@@ -34,13 +34,13 @@ import torch
 from bitcomm.checkpoint import checkpoints, load_weights
 from bitcomm.config import TaskConfig
 from bitcomm.errors import ConfigError, bad_value
-from bitcomm.estimators import ESTIMATORS, Advantages, EstimatorBatch, discounted_returns, policy_gradient_loss
-from bitcomm.networks import PolicyNet
+from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.estimators import ESTIMATORS, Advantages, EstimatorBatch, discounted_returns, policy_gradient_loss
+from bitcomm.learn.learner import Learner
+from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.plotting import save_figure
-from bitcomm.rollout import Collector, Rollout
-from bitcomm.tables import write_rows_csv
-from bitcomm.train.config import TrainConfig
-from bitcomm.train.learner import Learner
+from bitcomm.policies.networks import PolicyNet
+from bitcomm.studies.tables import write_rows_csv
 
 PARTS = ("message", "action", "total")
 """Gradient parts: through log Pm only, through log pi only, and their sum (the whole estimate)."""

@@ -29,16 +29,16 @@ import torch.multiprocessing as mp
 from torch import nn
 
 from bitcomm.checkpoint import first_nonfinite, save_checkpoint
-from bitcomm.train.codebook import CodeBook
-from bitcomm.train.config import TrainConfig
-from bitcomm.train.run import (
+from bitcomm.learn.codebook import CodeBook
+from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.run_folder import (
     Logger,
     Progress,
-    _prepare,
     checkpoint_weights,
     finite_or_stop,
     oracle_level,
     plot_learning_curve,
+    prepare,
     read_config_json,
     restore_learner,
     rolling_length,
@@ -122,8 +122,8 @@ def _worker(
     results: Any,
 ) -> None:
     try:
-        from bitcomm.rollout import Collector
-        from bitcomm.train.learner import Learner
+        from bitcomm.learn.learner import Learner
+        from bitcomm.learn.rollout import Collector
 
         torch.set_num_threads(1)
         worker_seed = np.random.SeedSequence(cfg.seed, spawn_key=(1 << 30, w)).generate_state(2)
@@ -161,9 +161,9 @@ def _worker(
 def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
     from tqdm import tqdm
 
-    from bitcomm.train.learner import Learner
+    from bitcomm.learn.learner import Learner
 
-    saved = _prepare(cfg, out, resume)
+    saved = prepare(cfg, out, resume)
     torch.manual_seed(cfg.seed)
     learner = Learner(cfg)
     prog = Progress()

@@ -1,5 +1,5 @@
 """Where a command's policy comes from: a reference policy (`--policy oracle|random`), a learned RUN, or a
-learned policy exported to ONNX (`--onnx FILE`, run by onnxruntime: see `bitcomm.onnx_policy`).
+learned policy exported to ONNX (`--onnx FILE`, run by onnxruntime: see `bitcomm.policies.onnx_policy`).
 
 This module is the one place that turns command-line arguments into an `AgentPolicy` and the task it
 runs on, for `bitcomm render`, `analyze`, `deploy` and `sweep`. A learned policy is loaded through
@@ -22,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from bitcomm.agent_policies import AgentPolicy, ControllerAgent, OracleAgent, RandomAgent
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError, bad_value
-from bitcomm.policies import REFERENCE_POLICIES
+from bitcomm.policies.agent_policies import AgentPolicy, ControllerAgent, OracleAgent, RandomAgent
+from bitcomm.policies.reference import REFERENCE_POLICIES
 
 LEARNED_UNAVAILABLE = "learned policies need bitcomm.Controller, not available yet"
 
@@ -135,7 +135,7 @@ class PolicySource:
         if self.name == "run":
             return load_controller(self.run).task  # type: ignore[no-any-return]
         if self.name == "onnx":
-            from bitcomm.onnx_policy import OnnxController
+            from bitcomm.policies.onnx_policy import OnnxController
 
             return OnnxController.load(str(self.onnx)).task
         return TaskConfig()
@@ -152,7 +152,7 @@ class PolicySource:
         if self.name == "random":
             return RandomAgent(task, seed)
         if self.name == "onnx":
-            from bitcomm.onnx_policy import OnnxController
+            from bitcomm.policies.onnx_policy import OnnxController
 
             return ControllerAgent(OnnxController.load(str(self.onnx), seed=0 if seed is None else seed), self.greedy)
         return ControllerAgent(load_controller(self.run), greedy=self.greedy)

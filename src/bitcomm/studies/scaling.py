@@ -34,14 +34,14 @@ import torch
 
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import bad_value, check_int
-from bitcomm.heads import MESSAGE_HEADS
-from bitcomm.networks import CriticNet, PolicyNet
+from bitcomm.learn.config import TrainConfig, make_train_config
+from bitcomm.learn.learner import Learner
+from bitcomm.learn.recipes import DEFAULT_RECIPE
+from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.plotting import save_figure
-from bitcomm.rollout import Collector, Rollout
-from bitcomm.tables import write_rows_csv
-from bitcomm.train.config import TrainConfig, make_train_config
-from bitcomm.train.learner import Learner
-from bitcomm.train.recipes import DEFAULT_RECIPE
+from bitcomm.policies.heads import MESSAGE_HEADS
+from bitcomm.policies.networks import CriticNet, PolicyNet
+from bitcomm.studies.tables import write_rows_csv
 
 DEFAULT_SIZES = (10, 16, 32, 64)
 FLOAT_BYTES = 4
@@ -65,7 +65,7 @@ class ScalingConfig:
 
     sizes: tuple[int, ...] = DEFAULT_SIZES
     recipe: str = DEFAULT_RECIPE
-    """Networks and update of this recipe (`bitcomm.train.config.RECIPES`)."""
+    """Networks and update of this recipe (`bitcomm.learn.config.RECIPES`)."""
     estimator: str = "improved"
     batch_episodes: int = 8
     """Episodes in the fixed batch of the timed update."""
@@ -232,7 +232,7 @@ def measure(size: int, messages: str, scfg: ScalingConfig) -> ScalingRow:
 
 def learning_run(row: ScalingRow, scfg: ScalingConfig, out: Path, progress: bool = False) -> ScalingRow:
     """Train the pair for `scfg.episodes` episodes into `out` (skipped when over the memory limit)."""
-    from bitcomm.train.run import train
+    from bitcomm.learn.run import train
 
     if row.train_memory_gb > scfg.max_memory_gb:
         return row

@@ -19,11 +19,11 @@ from typing import NamedTuple
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from bitcomm.agent_policies import AgentPolicy, BatchedPolicy
+from bitcomm.channel.core import bits_to_index
 from bitcomm.config import TaskConfig
-from bitcomm.envs.channel import bits_to_index
 from bitcomm.envs.core import MOVE_NAMES
 from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.policies.agent_policies import AgentPolicy, BatchedPolicy
 
 # tab10: distinct on white, and the colours matplotlib users know
 PALETTE = (

@@ -1,0 +1,147 @@
+"""A training run: `train` holds the run folder's lock (`bitcomm.learn.run_folder` describes the folder)
+and trains in `cfg.mode`: `sync` here, `a3c` in `bitcomm.learn.a3c`.
+
+`sync` mode: batch k plays `num_envs` whole episodes seeded by `SeedSequence(seed, spawn_key=(k,))`
+and makes one learner update; the weights are initialised under `torch.manual_seed(seed)` and all
+sampling and minibatch order come from one generator seeded with `seed`; its state and the global torch
+generator's (which training-time noise may draw from) are checkpointed.
+So a run is reproducible bit for bit on one machine, and a resumed run continues exactly as if it
+had never stopped.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bitcomm.checkpoint import (
+    CHECKPOINTS,
+    LATEST,
+    save_checkpoint,
+)
+from bitcomm.errors import ConfigError
+from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.run_folder import (
+    Logger,
+    Progress,
+    checkpoint_weights,
+    finite_or_stop,
+    has_checkpoint,
+    oracle_level,
+    plot_learning_curve,
+    prepare,
+    read_config_json,
+    restore_learner,
+    rolling_length,
+    write_config,
+)
+from bitcomm.run_lock import run_lock
+
+
+# ---------------------------------------------------------------------------------------------- loop
+def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
+    """Train in `cfg.mode` until `cfg.episodes` episodes are played; returns the latest checkpoint."""
+    out = Path(out)
+    if resume and not has_checkpoint(out):
+        raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})") from None
+    with run_lock(out):
+        if cfg.mode == "a3c":
+            from bitcomm.learn.a3c import train_a3c
+
+            return train_a3c(cfg, out, resume=resume, progress=progress)
+        return train_sync(cfg, out, resume=resume, progress=progress)
+
+
+def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
+    from tqdm import tqdm
+
+    from bitcomm.learn.learner import Learner
+    from bitcomm.learn.rollout import Collector
+
+    saved = prepare(cfg, out, resume)
+    torch.manual_seed(cfg.seed)
+    learner = Learner(cfg)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    collector = Collector(cfg.training_task, cfg.num_envs)
+    prog = Progress()
+    if saved is not None:
+        restore_learner(learner, saved)
+        generator.set_state(saved["generator"])
+        torch.set_rng_state(saved["torch_rng"])  # anything drawing from the global generator continues too
+        prog.restore(saved)
+        config_extra = {k: v for k, v in read_config_json(out).items() if k == "oracle_mean_episode_length"}
+    else:
+        config_extra = {"oracle_mean_episode_length": oracle_level(cfg)}
+    write_config(cfg, out, config_extra)
+    logger = Logger(out, prog.batches if saved is not None else None)
+    n = cfg.task.env.n_agents
+
+    def save() -> Path:
+        state = {
+            **prog.state(),
+            "opt_policy": learner.opt_policy.state_dict(),
+            "opt_critic": learner.opt_critic.state_dict(),
+            "generator": generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+        }
+        path = save_checkpoint(
+            out,
+            cfg.to_dict(),
+            checkpoint_weights(learner),
+            prog.episodes,
+            prog.batches,
+            state,
+            rolling_length=rolling_length(prog),
+            keep=cfg.keep_checkpoints,
+        )
+        plot_learning_curve(out)
+        return path
+
+    planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs  # whole batches: the episodes that will be played
+    bar = tqdm(total=planned, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
+    last_save = time.monotonic()
+    path = None
+    try:
+        while prog.episodes < cfg.episodes:
+            t0 = time.perf_counter()
+            # rollout: batch k's episodes are fixed by (seed, k)
+            seed = np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,))
+            ro = collector.collect(learner.policy, seed, generator)
+            # update
+            stats = learner.update(ro, generator, progress=prog.episodes / cfg.episodes)
+            finite_or_stop(out, learner, prog.episodes + len(ro.length))
+            prog.wall_s += time.perf_counter() - t0
+            prog.batches += 1
+            prog.episodes += len(ro.length)
+            prog.agent_steps += int(ro.length.sum()) * n
+            prog.recent.extend(int(x) for x in ro.length)
+            prog.recent_return.extend(float(x) for x in ro.team_return)
+            row = {
+                "batch": prog.batches,
+                "episodes": prog.episodes,
+                "agent_steps": prog.agent_steps,
+                "wall_s": round(prog.wall_s, 3),
+                "charts/episode_length": float(ro.length.mean()),
+                "charts/episode_length_rolling": float(np.mean(prog.recent)),
+                "charts/team_return": float(ro.team_return.mean()),
+                "charts/success": float(ro.success.mean()),
+                **stats,
+            }
+            logger.log(row)
+            bar.update(len(ro.length))
+            bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")
+            if time.monotonic() - last_save >= cfg.checkpoint_seconds and prog.episodes < cfg.episodes:
+                save()
+                last_save = time.monotonic()
+        path = save()
+    finally:
+        bar.close()
+        logger.close()
+    return path
