@@ -2,7 +2,11 @@
 
 # baselines  critics evaluated once per batch (V1 for standard, V2 with masks for improved)
 # advantages the estimator chosen by name (bitcomm.learn.estimators), optionally normalised
-# update     policy loss (+ entropy, + optional goal grounding), critic MSE to Q_t, per-loss clipping
+# update     per minibatch: the recipe's objective terms (bitcomm.learn.objectives) summed per clip
+#            group, each group clipped on its own, one policy step; the critic term, one critic step
+
+The learner speaks the rollout's tensors (`bitcomm.learn.rollout.Rollout`); the networks it owns
+(`bitcomm.policies.networks`) are where the task's observation layout is read.
 """
 
 from __future__ import annotations
@@ -11,32 +15,13 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
-from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator, policy_gradient_loss
+from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
+from bitcomm.learn.objectives import Routes, StepBatch, Term, clip_groups, critic_mse, policy_terms
 from bitcomm.learn.rollout import Rollout
 from bitcomm.policies.networks import CriticNet, PolicyNet
-
-
-def clipped_policy_loss(
-    logp_action: torch.Tensor,
-    logp_message: torch.Tensor,
-    old_action: torch.Tensor,
-    old_message: torch.Tensor,
-    adv: Advantages,
-    valid: torch.Tensor,
-    clip: float,
-) -> torch.Tensor:
-    """PPO's clipped surrogate, applied to the action and message parts with their own advantages."""
-
-    def part(logp: torch.Tensor, old: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        ratio = torch.exp(logp - old)
-        return torch.minimum(ratio * a, ratio.clamp(1 - clip, 1 + clip) * a)
-
-    per_step = (part(logp_action, old_action, adv.action) + part(logp_message, old_message, adv.message)).sum(-1)
-    return -torch.where(valid, per_step, 0.0).sum() / valid.sum().clamp(min=1)
 
 
 class _Forward(NamedTuple):
@@ -76,7 +61,13 @@ class Learner:
         self.slot_senders = torch.from_numpy(task.slot_senders)
         self.observed = torch.tensor(task.env.observed)
         self.slot_goal = self.observed[self.slot_senders.clamp(min=0)]  # (n, slots): whose goal each slot names
+        self.routes = Routes(self.slot_senders, self.observed, self.slot_goal, task.channel.delay, task.env.size)
         self.codebook = CodeBook(task.env.size**2, self.policy.head) if cfg.code_coef > 0 else None
+
+    @property
+    def terms(self) -> list[Term]:
+        """The objective terms of the policy, from the config (read per step: A3C shares the code book)."""
+        return policy_terms(self.cfg, self.codebook)
 
     # ---------------------------------------------------------------- critic
     def critic_values(
@@ -125,8 +116,7 @@ class Learner:
         values = [self.critic_values(state, moves, received, *self._action_queries())]
         if not self.single_recipient:
             values.append(self.critic_values(state, moves, received, *self._message_queries()))
-        v = torch.cat(values, 1)
-        return F.mse_loss(v, returns[it, ib][:, None].expand_as(v))
+        return critic_mse(torch.cat(values, 1), returns[it, ib])
 
     # ---------------------------------------------------------------- update
     def update(self, ro: Rollout, generator: torch.Generator | None = None, progress: float = 0.0) -> dict[str, float]:
@@ -170,89 +160,28 @@ class Learner:
         h1, h2 = policy.trunk(feats, encoded)
         return _Forward(cols, it, ib, received, encoded, feats, h1, policy.message_logits(h2), policy.move_logits(h2))
 
+    def _batch(self, ro: Rollout, fw: _Forward, adv: Advantages | None = None) -> StepBatch:
+        return StepBatch(
+            ro, adv, fw.cols, fw.it, fw.ib, fw.received, fw.encoded, fw.feats, fw.h1, fw.msg_logits, fw.move_logits,
+            self.policy, self.routes,
+        )  # fmt: skip
+
     def log_probs(self, ro: Rollout, fw: _Forward | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Differentiable `(T, Bc, n)` log pi(a_t) and log Pm(m_t) of the moves and messages the rollout
         sampled, over the columns of the pass `fw` (default: one over the whole rollout); 0 where invalid."""
         if fw is None:
             fw = self._forward(ro, torch.arange(ro.valid.shape[1]))
-        it, ib, bc = fw.it, fw.ib, fw.cols[fw.ib]
-        M, n = it.shape[0], self.n
-        logp_move = torch.log_softmax(fw.move_logits, -1).gather(-1, ro.moves[it, bc].view(-1, 1)).view(M, n)
-        logp_msg = self.policy.head.log_prob(fw.msg_logits, ro.bits[it, bc].flatten(0, 1)).view(M, n)
-
-        def full(x: torch.Tensor) -> torch.Tensor:  # (M, n) sample values -> (T, Bc, n)
-            out = torch.zeros(ro.valid.shape[0], fw.cols.shape[0], n, dtype=x.dtype)
-            out[it, ib] = x
-            return out
-
-        return full(logp_move), full(logp_msg)
-
-    def _grounding_losses(self, ro: Rollout, fw: _Forward) -> tuple[list[torch.Tensor], dict[str, float]]:
-        """The optional grounding losses (`goal_coef`, `seen_coef`, `code_coef`), weighted, with their values
-        for the log."""
-        cfg, policy, S = self.cfg, self.policy, self.cfg.task.env.size
-        goal = ro.goal[fw.cols[fw.ib]]  # (M, n)
-        seen_goal = goal[:, self.observed].flatten()  # the goal each sender observes
-        losses, out = [], {}
-        if cfg.goal_coef > 0:
-            if policy.message_map is not None:
-                # privileged: each slot's map names the goal its sender observes (the receiver's own, in a
-                # ring), read from the bits that arrived; the sender's code comes from `code_coef`
-                _, present = self._sources(ro, fw.cols, fw.it, fw.ib)
-                label = goal[:, self.slot_goal].flatten()
-                ce = F.cross_entropy(policy.map_logits(fw.encoded).flatten(0, 1), label, reduction="none")
-                mask = present.flatten().float()
-                goal_loss = (ce * mask).sum() / mask.sum().clamp(min=1)
-            else:  # privileged: the receiver names its own goal from what it heard
-                heard = self._heard(ro, fw.cols, fw.it, fw.ib, fw.received, fw.msg_logits)
-                h1_heard, _ = policy.trunk(fw.feats, heard)
-                goal_loss = _cell_loss(policy.goal_logits(h1_heard), goal.flatten(), S)
-            losses.append(cfg.goal_coef * goal_loss)
-            out["losses/goal"] = goal_loss.item()
-        if cfg.seen_coef > 0:  # the sender names the goal it observes
-            seen_loss = _cell_loss(policy.seen_logits(fw.h1), seen_goal, S)
-            losses.append(cfg.seen_coef * seen_loss)
-            out["losses/seen"] = seen_loss.item()
-        if self.codebook is not None:  # the sender says its goal's code word
-            words = self.codebook.targets(seen_goal, fw.msg_logits)
-            code_loss = -policy.head.log_prob(fw.msg_logits, words).mean()
-            losses.append(cfg.code_coef * code_loss)
-            out["losses/code"] = code_loss.item()
-        return losses, out
+        return self._batch(ro, fw).log_probs
 
     def _step(
         self, ro: Rollout, adv: Advantages, cols: torch.Tensor, clip_scales: list[float] | None
     ) -> tuple[dict[str, float], list[float]]:
         """One gradient step of policy and critic on the whole episodes in columns `cols`; returns the
         figures for the log and the policy losses' clip factors (see `_clipped_step`)."""
-        cfg, policy, head, n = self.cfg, self.policy, self.policy.head, self.n
         fw = self._forward(ro, cols)
-        valid = ro.valid[:, cols]
-        msg_logits, move_logits = fw.msg_logits, fw.move_logits
-        logp_move, logp_msg = self.log_probs(ro, fw)
-        sub = Advantages(adv.action[:, cols], adv.message[:, cols], adv.returns[:, cols])
-        if cfg.clip > 0:
-            pg = clipped_policy_loss(
-                logp_move, logp_msg, ro.logp_move[:, cols], ro.logp_message[:, cols], sub, valid, cfg.clip
-            )
-        else:
-            pg = policy_gradient_loss(logp_move, logp_msg, sub, valid)
-        logp_moves = torch.log_softmax(move_logits, -1)
-        ent_move = -(logp_moves.exp() * logp_moves).sum(-1).mean()
-        ent_msg = head.entropy(msg_logits).mean()
-        loss = pg - n * (cfg.entropy_move * ent_move + cfg.entropy_message * ent_msg)
-        if cfg.uniform_move > 0:  # KL(uniform || pi) up to a constant
-            loss = loss - n * cfg.uniform_move * logp_moves.mean()
-        grounding, out = self._grounding_losses(ro, fw)
-        out.update(
-            {
-                "losses/policy": pg.item(),
-                "charts/entropy_move": ent_move.item(),
-                "charts/entropy_message": ent_msg.item(),
-            }
-        )
-        clip_scales = self._clipped_step(self.opt_policy, list(policy.parameters()), [loss, *grounding], clip_scales)
-
+        # policy: the recipe's terms, summed per clip group (reinforcement, then each auxiliary term)
+        losses, out = clip_groups(self.terms, self._batch(ro, fw, adv))
+        clip_scales = self._clipped_step(self.opt_policy, list(self.policy.parameters()), losses, clip_scales)
         # critic: regress on Q_t for every query it answers
         v_loss = self.critic_loss(ro, fw.it, cols[fw.ib], adv.returns)
         self._clipped_step(self.opt_critic, list(self.critic.parameters()), [v_loss], None)
@@ -290,47 +219,6 @@ class Learner:
             p.grad = g
         opt.step()
         return scales
-
-    def _sources(
-        self, ro: Rollout, cols: torch.Tensor, it: torch.Tensor, ib: torch.Tensor
-    ) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
-        """For each received slot `(M, n, slots)`: the index of the step, episode and sender that sent it
-        (into arrays over columns `cols`), and whether a message arrived there (sent, in time, not dropped)."""
-        d = self.cfg.task.channel.delay
-        ts = (it - d).clamp(min=0)[:, None, None]
-        snd = self.slot_senders.clamp(min=0)[None]  # (1, n, slots)
-        src = ts, ib[:, None, None], snd
-        use = (it >= d)[:, None, None] & (self.slot_senders >= 0)[None] & ~ro.dropped[:, cols][src]
-        return src, use
-
-    def _heard(
-        self,
-        ro: Rollout,
-        cols: torch.Tensor,
-        it: torch.Tensor,
-        ib: torch.Tensor,
-        received: torch.Tensor,
-        msg_logits: torch.Tensor,
-    ) -> torch.Tensor:
-        """Receivers' inputs as a differentiable function of senders' logits (see TrainConfig.channel_noise)."""
-        T, Bc = ro.valid.shape[0], cols.shape[0]
-        n, head = self.n, self.policy.head
-        logits = torch.zeros(T, Bc, n, msg_logits.shape[-1])
-        logits[it, ib] = msg_logits.view(it.shape[0], n, -1)
-        src, use = self._sources(ro, cols, it, ib)
-        sent_bits = ro.bits[:, cols][src]  # (M, n, slots, K)
-        flips = received ^ sent_bits
-        noise = self.cfg.channel_noise
-        if noise > 0:
-            soft = head.relaxed(logits[src], flips, noise)
-        else:
-            soft = head.straight_through(logits[src], received, flips)
-        return torch.where(use[..., None], soft, head.encode(received)).flatten(0, 1).flatten(1)
-
-
-def _cell_loss(logits: torch.Tensor, cell: torch.Tensor, size: int) -> torch.Tensor:
-    """Cross-entropy of row and column read-outs `(N, 2 * size)` against cell indices `(N,)`."""
-    return F.cross_entropy(logits[:, :size], cell // size) + F.cross_entropy(logits[:, size:], cell % size)
 
 
 def _scaled(a: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

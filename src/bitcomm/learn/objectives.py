@@ -1,0 +1,338 @@
+"""The objective terms of one learning step, each a small function of the minibatch with its maths below.
+
+A recipe of terms (`policy_terms(cfg, n)`) is what the learner minimises; the update only sums the
+terms of each clip group, clips each group to `max_grad_norm` on its own, and steps
+(`Learner._clipped_step`). Notation, per valid step `t` of episode `b`, for agent `j` of `n`:
+`pi` the move policy, `Pm` the message distribution of the head, `A` the estimator's advantages
+(`bitcomm.learn.estimators`, detached), `H` an entropy, `V` a critic value, `Q_t` the return.
+
+Reinforcement (SPEC section 7; every gradient reaching a policy head comes from these):
+
+    PolicyGradient   -(1/#valid) sum_{t,b,j} [log pi(a) A^a + log Pm(m) A^m]        (clip = 0)
+                     -(1/#valid) sum_{t,b,j} sum_{head} min(r A, clip(r, 1-e, 1+e) A),  r = pi/pi_old
+    EntropyMove      -n w mean H(pi)          (mean over agent-steps; n puts it on the summed scale)
+    EntropyMessage   -n w mean H(Pm)
+    UniformMove      -n w mean_a log pi(a) = n w (KL(U || pi) + log 5): an entropy-type pull toward
+                     uniform moves that, unlike H, grows without bound as a move's probability falls
+
+Critic (its own optimizer, and its own clip group): `critic_mse`, mean (V - Q_t)^2.
+
+Auxiliary (off by default, never in a pure run; each its own clip group, so it neither drowns the
+policy gradient nor is drowned by it). They read the grid task's goals, so they are specific to it:
+
+    GoalTerm   the receiver names its own goal cell from what it heard (or, with the message map,
+               each slot's map names the goal its sender observes): cross-entropy, weight `goal_coef`
+    SeenTerm   the sender names the goal it observes from its first hidden layer (`seen_coef`)
+    CodeTerm   the sender says its goal's code word (`bitcomm.learn.codebook`): -log Pm(word) (`code_coef`)
+
+A term returns its weighted loss and the figures it logs. Terms are evaluated in recipe order, which
+is also the order the network's pieces are built in (the log-softmax of the moves is shared), so a
+run's numbers do not depend on how the terms are grouped.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol
+
+import torch
+import torch.nn.functional as F
+
+from bitcomm.learn.codebook import CodeBook
+from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.estimators import Advantages, policy_gradient_loss
+from bitcomm.learn.rollout import Rollout
+from bitcomm.policies.networks import PolicyNet
+
+
+class Routes(NamedTuple):
+    """Who talks to whom in the task, for the auxiliary terms: `slot_senders (n, slots)` (-1: none),
+    `observed (n,)` whose goal each agent sees, `slot_goal (n, slots)` whose goal each slot names."""
+
+    slot_senders: torch.Tensor
+    observed: torch.Tensor
+    slot_goal: torch.Tensor
+    delay: int
+    size: int
+
+
+class StepBatch:
+    """One minibatch: the policy's pass over the valid steps `(it, ib)` of columns `cols` of a rollout,
+    the advantages of those columns, and what the terms derive from them (computed once, on first use)."""
+
+    def __init__(
+        self,
+        ro: Rollout,
+        adv: Advantages | None,
+        cols: torch.Tensor,
+        it: torch.Tensor,
+        ib: torch.Tensor,
+        received: torch.Tensor,
+        encoded: torch.Tensor,
+        feats: torch.Tensor,
+        h1: torch.Tensor,
+        msg_logits: torch.Tensor,
+        move_logits: torch.Tensor,
+        policy: PolicyNet,
+        routes: Routes,
+    ) -> None:
+        self.ro, self.adv, self.cols, self.it, self.ib = ro, adv, cols, it, ib
+        self.received = received  # (M, n, slots, K)
+        self.encoded = encoded  # (M * n, slots * in_features): the received messages as the policy reads them
+        self.feats = feats  # (M * n, flat)
+        self.h1 = h1
+        self.msg_logits, self.move_logits = msg_logits, move_logits  # (M * n, .)
+        self.policy, self.routes = policy, routes
+        self.n = ro.moves.shape[2]
+        self.valid = ro.valid[:, cols]
+
+    @functools.cached_property
+    def log_probs(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Differentiable `(T, Bc, n)` log pi(a_t) and log Pm(m_t) of what the rollout sampled; 0 where invalid."""
+        ro, it, ib, n = self.ro, self.it, self.ib, self.n
+        bc, M = self.cols[ib], it.shape[0]
+        logp_move = torch.log_softmax(self.move_logits, -1).gather(-1, ro.moves[it, bc].view(-1, 1)).view(M, n)
+        logp_msg = self.policy.head.log_prob(self.msg_logits, ro.bits[it, bc].flatten(0, 1)).view(M, n)
+
+        def full(x: torch.Tensor) -> torch.Tensor:  # (M, n) sample values -> (T, Bc, n)
+            out = torch.zeros(ro.valid.shape[0], self.cols.shape[0], n, dtype=x.dtype)
+            out[it, ib] = x
+            return out
+
+        return full(logp_move), full(logp_msg)
+
+    @functools.cached_property
+    def sub_advantages(self) -> Advantages:
+        """The advantages of this minibatch's columns."""
+        a, c = self.adv, self.cols
+        if a is None:
+            raise ValueError("this batch was built without advantages")
+        return Advantages(a.action[:, c], a.message[:, c], a.returns[:, c])
+
+    @functools.cached_property
+    def move_log_softmax(self) -> torch.Tensor:
+        """`(M * n, 5)` log pi over all moves, shared by the entropy-type terms."""
+        return torch.log_softmax(self.move_logits, -1)
+
+    @functools.cached_property
+    def goal(self) -> torch.Tensor:
+        """`(M, n)` each agent's own goal cell at each step (privileged: auxiliary terms only)."""
+        return self.ro.goal[self.cols[self.ib]]
+
+
+class Term(Protocol):
+    """One named piece of the objective: `term(batch) -> (weighted loss, figures for the log)`."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def auxiliary(self) -> bool:
+        """True: its own clip group, and off in a pure run."""
+        ...
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]: ...
+
+
+# ------------------------------------------------------------------------------------------------ reinforcement
+def clipped_policy_loss(
+    logp_action: torch.Tensor,
+    logp_message: torch.Tensor,
+    old_action: torch.Tensor,
+    old_message: torch.Tensor,
+    adv: Advantages,
+    valid: torch.Tensor,
+    clip: float,
+) -> torch.Tensor:
+    """PPO's clipped surrogate, applied to the action and message parts with their own advantages."""
+
+    def part(logp: torch.Tensor, old: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        ratio = torch.exp(logp - old)
+        return torch.minimum(ratio * a, ratio.clamp(1 - clip, 1 + clip) * a)
+
+    per_step = (part(logp_action, old_action, adv.action) + part(logp_message, old_message, adv.message)).sum(-1)
+    return -torch.where(valid, per_step, 0.0).sum() / valid.sum().clamp(min=1)
+
+
+@dataclass(frozen=True)
+class PolicyGradient:
+    """The estimator's term, per head: each head's log-probability weighted by its own advantage
+    (`bitcomm.learn.estimators.policy_gradient_loss`), or PPO's clipped surrogate when `clip > 0`."""
+
+    clip: float = 0.0
+    name: str = "policy_gradient"
+    auxiliary: bool = False
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        logp_move, logp_msg = b.log_probs
+        adv, cols = b.sub_advantages, b.cols
+        if self.clip > 0:
+            old_move, old_msg = b.ro.logp_move[:, cols], b.ro.logp_message[:, cols]
+            pg = clipped_policy_loss(logp_move, logp_msg, old_move, old_msg, adv, b.valid, self.clip)
+        else:
+            pg = policy_gradient_loss(logp_move, logp_msg, adv, b.valid)
+        return pg, {"losses/policy": pg.item()}
+
+
+@dataclass(frozen=True)
+class EntropyMove:
+    """-n w mean H(pi): the entropy bonus of the move head (logged even at weight 0)."""
+
+    weight: float
+    name: str = "entropy_move"
+    auxiliary: bool = False
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        logp = b.move_log_softmax
+        h = -(logp.exp() * logp).sum(-1).mean()
+        return -(b.n * (self.weight * h)), {"charts/entropy_move": h.item()}
+
+
+@dataclass(frozen=True)
+class EntropyMessage:
+    """-n w mean H(Pm): the entropy bonus of the message head, as the head computes it (logged even at weight 0)."""
+
+    weight: float
+    name: str = "entropy_message"
+    auxiliary: bool = False
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        h = b.policy.head.entropy(b.msg_logits).mean()
+        return -(b.n * (self.weight * h)), {"charts/entropy_message": h.item()}
+
+
+@dataclass(frozen=True)
+class UniformMove:
+    """-n w mean_a log pi(a) = n w (KL(U || pi) + log 5), U uniform over the 5 moves."""
+
+    weight: float
+    name: str = "uniform_move"
+    auxiliary: bool = False
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        return -(b.n * self.weight) * b.move_log_softmax.mean(), {}
+
+
+def critic_mse(values: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
+    """The critic term: mean over samples and queries of (V - Q_t)^2; `values (M, k)`, `returns (M,)`."""
+    return F.mse_loss(values, returns[:, None].expand_as(values))
+
+
+# ------------------------------------------------------------------------------------------------ auxiliary
+def cell_loss(logits: torch.Tensor, cell: torch.Tensor, size: int) -> torch.Tensor:
+    """Cross-entropy of row and column read-outs `(N, 2 * size)` against cell indices `(N,)`."""
+    return F.cross_entropy(logits[:, :size], cell // size) + F.cross_entropy(logits[:, size:], cell % size)
+
+
+def message_sources(b: StepBatch) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
+    """For each received slot `(M, n, slots)`: the index of the step, episode and sender that sent it
+    (into arrays over columns `cols`), and whether a message arrived there (sent, in time, not dropped)."""
+    d, senders = b.routes.delay, b.routes.slot_senders
+    ts = (b.it - d).clamp(min=0)[:, None, None]
+    snd = senders.clamp(min=0)[None]  # (1, n, slots)
+    src = ts, b.ib[:, None, None], snd
+    use = (b.it >= d)[:, None, None] & (senders >= 0)[None] & ~b.ro.dropped[:, b.cols][src]
+    return src, use
+
+
+def heard(b: StepBatch, noise: float) -> torch.Tensor:
+    """Receivers' inputs as a differentiable function of senders' logits (see TrainConfig.channel_noise)."""
+    ro, cols, it, ib, head = b.ro, b.cols, b.it, b.ib, b.policy.head
+    T, Bc = ro.valid.shape[0], cols.shape[0]
+    logits = torch.zeros(T, Bc, b.n, b.msg_logits.shape[-1])
+    logits[it, ib] = b.msg_logits.view(it.shape[0], b.n, -1)
+    src, use = message_sources(b)
+    sent_bits = ro.bits[:, cols][src]  # (M, n, slots, K)
+    flips = b.received ^ sent_bits
+    if noise > 0:
+        soft = head.relaxed(logits[src], flips, noise)
+    else:
+        soft = head.straight_through(logits[src], b.received, flips)
+    return torch.where(use[..., None], soft, head.encode(b.received)).flatten(0, 1).flatten(1)
+
+
+@dataclass(frozen=True)
+class GoalTerm:
+    """Auxiliary (privileged): w * cross-entropy of the goal a receiver should know. With the message map,
+    each slot's map names the goal its sender observes, read from the bits that arrived (mean over slots
+    where a message arrived); without it, the receiver names its own goal from what it heard, through a
+    relaxed channel (`channel_noise`), so the gradient reaches the sender."""
+
+    weight: float
+    channel_noise: float
+    name: str = "goal"
+    auxiliary: bool = True
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        policy, goal, size = b.policy, b.goal, b.routes.size
+        if policy.message_map is not None:
+            _, present = message_sources(b)
+            label = goal[:, b.routes.slot_goal].flatten()
+            ce = F.cross_entropy(policy.map_logits(b.encoded).flatten(0, 1), label, reduction="none")
+            mask = present.flatten().float()
+            loss = (ce * mask).sum() / mask.sum().clamp(min=1)
+        else:
+            h1_heard, _ = policy.trunk(b.feats, heard(b, self.channel_noise))
+            loss = cell_loss(policy.goal_logits(h1_heard), goal.flatten(), size)
+        return self.weight * loss, {"losses/goal": loss.item()}
+
+
+@dataclass(frozen=True)
+class SeenTerm:
+    """Auxiliary (privileged): w * cross-entropy of the sender naming the goal it observes, from its first
+    hidden layer."""
+
+    weight: float
+    name: str = "seen"
+    auxiliary: bool = True
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        seen_goal = b.goal[:, b.routes.observed].flatten()
+        loss = cell_loss(b.policy.seen_logits(b.h1), seen_goal, b.routes.size)
+        return self.weight * loss, {"losses/seen": loss.item()}
+
+
+@dataclass(frozen=True)
+class CodeTerm:
+    """Auxiliary (privileged): -w mean log Pm(word), the word the code book assigns the sender's goal."""
+
+    weight: float
+    codebook: CodeBook
+    name: str = "code"
+    auxiliary: bool = True
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        seen_goal = b.goal[:, b.routes.observed].flatten()
+        words = self.codebook.targets(seen_goal, b.msg_logits)
+        loss = -b.policy.head.log_prob(b.msg_logits, words).mean()
+        return self.weight * loss, {"losses/code": loss.item()}
+
+
+# ------------------------------------------------------------------------------------------------ recipe
+def policy_terms(cfg: TrainConfig, codebook: CodeBook | None) -> list[Term]:
+    """The terms `cfg` asks for, in the order they are evaluated: the reinforcement terms (the entropy
+    bonuses always, for their figures), then each auxiliary term whose weight is positive."""
+    terms: list[Term] = [PolicyGradient(cfg.clip), EntropyMove(cfg.entropy_move), EntropyMessage(cfg.entropy_message)]
+    if cfg.uniform_move > 0:
+        terms.append(UniformMove(cfg.uniform_move))
+    if cfg.goal_coef > 0:
+        terms.append(GoalTerm(cfg.goal_coef, cfg.channel_noise))
+    if cfg.seen_coef > 0:
+        terms.append(SeenTerm(cfg.seen_coef))
+    if codebook is not None:
+        terms.append(CodeTerm(cfg.code_coef, codebook))
+    return terms
+
+
+def clip_groups(terms: list[Term], b: StepBatch) -> tuple[list[torch.Tensor], dict[str, float]]:
+    """Evaluate `terms` on `b`: the sum of the reinforcement terms first, then each auxiliary term as a
+    group of its own; and every term's figures, auxiliary first (the log's column order)."""
+    main: list[torch.Tensor] = []
+    auxiliary: list[torch.Tensor] = []
+    figures: dict[str, float] = {}
+    aux_figures: dict[str, float] = {}
+    for term in terms:
+        loss, logged = term(b)
+        (auxiliary if term.auxiliary else main).append(loss)
+        (aux_figures if term.auxiliary else figures).update(logged)
+    return [functools.reduce(torch.add, main), *auxiliary], {**aux_figures, **figures}
