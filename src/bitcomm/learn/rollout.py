@@ -20,7 +20,17 @@ from bitcomm.policies.networks import PolicyNet
 
 
 class Rollout(NamedTuple):
-    """B whole episodes, time-major. Tensors share memory with the collector's buffers."""
+    """B whole episodes, time-major: the tensor contract of the learning core. Tensors share memory with
+    the collector's buffers.
+
+    The estimators read only `rewards`, `done`, `valid`, `dropped` (and the critics' baselines); the
+    objective terms read `moves`, `bits`, `logp_*` and `valid`; the networks read `planes`, `received`
+    (policy) and `state`, `moves`, `received` (critics). `T` steps, `B` episodes, `n` agents, `K` bits,
+    `slots` messages an agent hears per step. The observation fields are the grid task's: `planes`
+    (own position and seen goal, `2 x S x S`) and `state` (every agent's planes) are what another task
+    replaces, with an encoder for its observations (`ModelConfig.encoder`); `goal` is read only by the
+    auxiliary terms. Everything else is per-agent and task-agnostic.
+    """
 
     planes: torch.Tensor  # (T, B, n, 2, S, S) uint8
     received: torch.Tensor  # (T, B, n, slots, K) uint8
