@@ -10,8 +10,8 @@ Reinforcement (SPEC section 7; every gradient reaching a policy head comes from 
 
     PolicyGradient   -(1/#valid) sum_{t,b,j} [log pi(a) A^a + log Pm(m) A^m]        (clip = 0)
                      -(1/#valid) sum_{t,b,j} sum_{head} min(r A, clip(r, 1-e, 1+e) A),  r = pi/pi_old
-    EntropyMove      -n w mean H(pi)          (mean over agent-steps; n puts it on the summed scale)
-    EntropyMessage   -n w mean H(Pm)
+    Entropy move     -n w mean H(pi)          (mean over agent-steps; n puts it on the summed scale)
+    Entropy message  -n w mean H(Pm)
     UniformMove      -n w mean_a log pi(a) = n w (KL(U || pi) + log 5): an entropy-type pull toward
                      uniform moves that, unlike H, grows without bound as a move's probability falls
 
@@ -175,30 +175,25 @@ class PolicyGradient:
 
 
 @dataclass(frozen=True)
-class EntropyMove:
-    """-n w mean H(pi): the entropy bonus of the move head (logged even at weight 0)."""
+class Entropy:
+    """-n w mean H: the entropy bonus of one head, `move` (H(pi)) or `message` (H(Pm), as the head computes
+    it); logged even at weight 0, as `charts/entropy_<head>`."""
 
+    head: str
     weight: float
-    name: str = "entropy_move"
     auxiliary: bool = False
 
-    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
-        logp = b.move_log_softmax
-        h = -(logp.exp() * logp).sum(-1).mean()
-        return -(b.n * (self.weight * h)), {"charts/entropy_move": h.item()}
-
-
-@dataclass(frozen=True)
-class EntropyMessage:
-    """-n w mean H(Pm): the entropy bonus of the message head, as the head computes it (logged even at weight 0)."""
-
-    weight: float
-    name: str = "entropy_message"
-    auxiliary: bool = False
+    @property
+    def name(self) -> str:
+        return f"entropy_{self.head}"
 
     def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
-        h = b.policy.head.entropy(b.msg_logits).mean()
-        return -(b.n * (self.weight * h)), {"charts/entropy_message": h.item()}
+        if self.head == "move":
+            logp = b.move_log_softmax
+            h = -(logp.exp() * logp).sum(-1).mean()
+        else:
+            h = b.policy.head.entropy(b.msg_logits).mean()
+        return -(b.n * (self.weight * h)), {f"charts/{self.name}": h.item()}
 
 
 @dataclass(frozen=True)
@@ -312,7 +307,11 @@ class CodeTerm:
 def policy_terms(cfg: TrainConfig, codebook: CodeBook | None) -> list[Term]:
     """The terms `cfg` asks for, in the order they are evaluated: the reinforcement terms (the entropy
     bonuses always, for their figures), then each auxiliary term whose weight is positive."""
-    terms: list[Term] = [PolicyGradient(cfg.clip), EntropyMove(cfg.entropy_move), EntropyMessage(cfg.entropy_message)]
+    terms: list[Term] = [
+        PolicyGradient(cfg.clip),
+        Entropy("move", cfg.entropy_move),
+        Entropy("message", cfg.entropy_message),
+    ]
     if cfg.uniform_move > 0:
         terms.append(UniformMove(cfg.uniform_move))
     if cfg.goal_coef > 0:
