@@ -128,7 +128,7 @@ class TrainConfig:
         relaxed = self.goal_coef > 0 and not self.model.message_map
         if self.channel_noise != 1.0 and not relaxed:
             raise bad_value(
-                "channel_noise",
+                "channel-noise",
                 self.channel_noise,
                 "acts only where the goal loss reaches the sender (goal-coef > 0 with --no-message-map); leave it at 1",
             )
