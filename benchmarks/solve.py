@@ -1,8 +1,8 @@
-"""The yardstick of issue 4: how fast does a recipe learn the task, seed by seed?
+"""The yardstick of issues 4 and 16: how fast does a recipe learn the task, seed by seed?
 
 Trains a named recipe (improved + bitwise unless told otherwise) on a task for S seeds and prints,
 per seed, the environment episodes and training wall seconds until the mean episode length of
-sampled play falls below 2x and below 1.15x the oracle, and then until greedy play falls below 1.05x
+sampled play falls below 2x, 1.5x and 1.15x the oracle, and then until greedy play falls below 1.05x
 (the ladder's third rung). A sampled rung counts when the rolling mean over the last 1,000 training
 episodes is below it AND `bitcomm eval` on 2,000 fixed episodes (sampled, seed 12345) confirms it;
 the greedy rung is checked with `bitcomm eval --greedy` after every chunk once 1.15x is reached.
@@ -32,7 +32,7 @@ from typing import Any
 
 from bitcomm.learn.recipes import DEFAULT_RECIPE
 
-RUNGS = (("2x", 2.0), ("1.15x", 1.15))
+RUNGS = (("2x", 2.0), ("1.5x", 1.5), ("1.15x", 1.15))
 GREEDY_RUNG = ("greedy 1.05x", 1.05)
 EVAL_SEED = 12345
 
