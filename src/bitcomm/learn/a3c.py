@@ -28,7 +28,7 @@ import torch
 import torch.multiprocessing as mp
 from torch import nn
 
-from bitcomm.checkpoint import first_nonfinite, save_checkpoint
+from bitcomm.checkpoint import first_nonfinite
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.run_folder import (
@@ -37,11 +37,10 @@ from bitcomm.learn.run_folder import (
     checkpoint_weights,
     finite_or_stop,
     oracle_level,
-    plot_learning_curve,
     prepare,
     read_config_json,
     restore_learner,
-    rolling_length,
+    save_run_checkpoint,
     write_config,
 )
 
@@ -207,18 +206,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 "next_batch": next_batch.value,
             }
             state = {k: _clone(v) for k, v in state.items()}
-        path = save_checkpoint(
-            out,
-            cfg.to_dict(),
-            weights,
-            prog.episodes,
-            prog.batches,
-            state,
-            rolling_length=rolling_length(prog),
-            keep=cfg.keep_checkpoints,
-        )
-        plot_learning_curve(out)
-        return path
+        return save_run_checkpoint(out, cfg, weights, prog, state)
 
     bar = tqdm(total=cfg.episodes, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
     t_start, wall0 = time.perf_counter(), prog.wall_s

@@ -20,7 +20,6 @@ import torch
 from bitcomm.checkpoint import (
     CHECKPOINTS,
     LATEST,
-    save_checkpoint,
 )
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import TrainConfig
@@ -31,11 +30,10 @@ from bitcomm.learn.run_folder import (
     finite_or_stop,
     has_checkpoint,
     oracle_level,
-    plot_learning_curve,
     prepare,
     read_config_json,
     restore_learner,
-    rolling_length,
+    save_run_checkpoint,
     write_config,
 )
 from bitcomm.run_lock import run_lock
@@ -91,18 +89,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
             "generator": generator.get_state(),
             "torch_rng": torch.get_rng_state(),
         }
-        path = save_checkpoint(
-            out,
-            cfg.to_dict(),
-            checkpoint_weights(learner),
-            prog.episodes,
-            prog.batches,
-            state,
-            rolling_length=rolling_length(prog),
-            keep=cfg.keep_checkpoints,
-        )
-        plot_learning_curve(out)
-        return path
+        return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state)
 
     planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs  # whole batches: the episodes that will be played
     bar = tqdm(total=planned, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)

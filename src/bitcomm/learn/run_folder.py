@@ -34,6 +34,7 @@ from bitcomm.checkpoint import (
     load_weights,
     refuse_nonfinite,
     resolve,
+    save_checkpoint,
 )
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import TrainConfig
@@ -92,16 +93,21 @@ def write_config(cfg: TrainConfig, out: Path, extra: dict[str, Any]) -> None:
     tmp.replace(out / "config.json")
 
 
-def read_config_json(out: Path) -> dict[str, Any]:
-    """The run's config.json, or one line naming it when it is missing or not a JSON object."""
-    path = out / "config.json"
+def read_json_object(path: Path, what: str = "file") -> dict[str, Any]:
+    """A JSON object from a file of a run folder, or one line naming the file (as `what`) when it is
+    missing, unreadable or not a JSON object."""
     try:
         record = json.loads(path.read_text())
     except (OSError, ValueError) as err:
-        raise ConfigError(f"invalid config={str(path)!r}: unreadable ({type(err).__name__}: {err})") from None
+        raise ConfigError(f"invalid {what}={str(path)!r}: unreadable ({type(err).__name__}: {err})") from None
     if not isinstance(record, dict):
-        raise ConfigError(f"invalid config={str(path)!r}: not a JSON object")
+        raise ConfigError(f"invalid {what}={str(path)!r}: not a JSON object")
     return record
+
+
+def read_config_json(out: Path) -> dict[str, Any]:
+    """The run's config.json, or one line naming it."""
+    return read_json_object(out / "config.json", "config")
 
 
 def read_metrics(path: Path, upto_batch: int) -> list[dict[str, str]]:
@@ -264,5 +270,20 @@ def finite_or_stop(out: Path, learner: Any, episodes: int) -> None:
     refuse_nonfinite(out, episodes, **checkpoint_weights(learner))
 
 
-def rolling_length(prog: Progress) -> float | None:
-    return float(np.mean(prog.recent)) if prog.recent else None
+def save_run_checkpoint(
+    out: Path, cfg: TrainConfig, weights: dict[str, dict[str, torch.Tensor]], prog: Progress, state: dict[str, Any]
+) -> Path:
+    """One checkpoint of the run (sync or a3c), ranked by its rolling mean length for retention, then the plot."""
+    rolling = float(np.mean(prog.recent)) if prog.recent else None
+    path = save_checkpoint(
+        out,
+        cfg.to_dict(),
+        weights,
+        prog.episodes,
+        prog.batches,
+        state,
+        rolling_length=rolling,
+        keep=cfg.keep_checkpoints,
+    )
+    plot_learning_curve(out)
+    return path

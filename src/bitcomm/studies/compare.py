@@ -233,17 +233,6 @@ def plan(cfg: CompareConfig) -> list[Run]:
 
 
 # ---------------------------------------------------------------------------------------------- runs
-def _json(path: Path) -> dict[str, Any]:
-    """A JSON object from a file of a run folder, or one line naming the file."""
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise ConfigError(f"invalid file={str(path)!r}: unreadable ({type(err).__name__}: {err})") from None
-    if not isinstance(record, dict):
-        raise ConfigError(f"invalid file={str(path)!r}: not a JSON object")
-    return record
-
-
 def _latest(folder: Path) -> dict[str, Any]:
     """The run's checked `latest.json` (it names a checkpoint of its own folder)."""
     from bitcomm.checkpoint import CHECKPOINTS, read_latest
@@ -280,9 +269,10 @@ def run_status(run: Run) -> str:
 def _recorded_config(folder: Path) -> TrainConfig:
     """The TrainConfig in a run's config.json; fields added since it was written take their defaults."""
     from bitcomm.learn.config import TrainConfig
+    from bitcomm.learn.run_folder import read_json_object
 
     names = {f.name for f in dataclasses.fields(TrainConfig)}
-    return TrainConfig.from_dict({k: v for k, v in _json(folder / "config.json").items() if k in names})
+    return TrainConfig.from_dict({k: v for k, v in read_json_object(folder / "config.json").items() if k in names})
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -296,11 +286,12 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 def read_evaluation(run: Run, episodes: int, seed: int) -> dict[str, Any] | None:
     """The run's evaluation.json if it measured its latest checkpoint on this episode set, else None."""
     from bitcomm.checkpoint import CHECKPOINTS, LATEST
+    from bitcomm.learn.run_folder import read_json_object
 
     path, latest = run.folder / EVALUATION, run.folder / CHECKPOINTS / LATEST
     if not (path.is_file() and latest.is_file()):
         return None
-    record = _json(path)
+    record = read_json_object(path)
     same = (record.get("checkpoint"), record.get("episodes"), record.get("seed"))
     return record if same == (_latest(run.folder)["checkpoint"], episodes, seed) else None
 
