@@ -23,7 +23,7 @@ def random_bits(rng: np.random.Generator, B: int, n: int, K: int = 7) -> np.ndar
 
 
 def test_delay_one_delivers_next_step_to_the_default_recipient() -> None:
-    ch = Channel(task(), num_envs=3, seed=0)
+    ch = Channel.for_task(task(), num_envs=3, seed=0)
     assert ch.received().shape == (3, 2, 1, 7)
     assert not ch.received().any()  # nothing sent yet: zeros
     sent = random_bits(np.random.default_rng(0), 3, 2)
@@ -37,7 +37,7 @@ def test_delay_one_delivers_next_step_to_the_default_recipient() -> None:
 
 
 def test_delay_three_queue() -> None:
-    ch = Channel(task(delay=3), num_envs=2, seed=0)
+    ch = Channel.for_task(task(delay=3), num_envs=2, seed=0)
     rng = np.random.default_rng(1)
     history: list[np.ndarray] = []
     for t in range(8):
@@ -52,7 +52,7 @@ def test_delay_three_queue() -> None:
 
 
 def test_reset_mask_forgets_messages_in_flight_of_those_episodes_only() -> None:
-    ch = Channel(task(delay=2), num_envs=2, seed=0)
+    ch = Channel.for_task(task(delay=2), num_envs=2, seed=0)
     ones = np.ones((2, 2, 7), dtype=np.uint8)
     ch.transmit(ones)
     ch.transmit(ones)
@@ -86,7 +86,7 @@ def test_episode_reset_clears_the_channel(delay: int) -> None:
 
 def test_flip_rate_matches_flip_prob() -> None:
     B, p = 4096, 0.1
-    ch = Channel(task(flip_prob=p), num_envs=B, seed=0)
+    ch = Channel.for_task(task(flip_prob=p), num_envs=B, seed=0)
     ch.transmit(np.zeros((B, 2, 7), dtype=np.uint8))
     rate = ch.received().mean()
     sigma = np.sqrt(p * (1 - p) / (B * 2 * 7))
@@ -94,7 +94,7 @@ def test_flip_rate_matches_flip_prob() -> None:
 
 
 def test_flip_prob_one_inverts_every_bit() -> None:
-    ch = Channel(task(flip_prob=1.0), num_envs=4, seed=0)
+    ch = Channel.for_task(task(flip_prob=1.0), num_envs=4, seed=0)
     sent = random_bits(np.random.default_rng(2), 4, 2)
     ch.transmit(sent)
     np.testing.assert_array_equal(ch.received()[:, 1, 0], 1 - sent[:, 0])
@@ -102,7 +102,7 @@ def test_flip_prob_one_inverts_every_bit() -> None:
 
 def test_drop_rate_and_flags() -> None:
     B, p = 4096, 0.3
-    ch = Channel(task(drop_prob=p), num_envs=B, seed=0)
+    ch = Channel.for_task(task(drop_prob=p), num_envs=B, seed=0)
     dropped = ch.transmit(np.ones((B, 2, 7), dtype=np.uint8))
     assert abs(dropped.mean() - p) < 5 * np.sqrt(p * (1 - p) / (B * 2))
     got = ch.received()
@@ -114,7 +114,7 @@ def test_drop_rate_and_flags() -> None:
 
 def test_noise_is_seeded() -> None:
     def run(seed: int) -> np.ndarray:
-        ch = Channel(task(flip_prob=0.2, drop_prob=0.2), num_envs=64, seed=seed)
+        ch = Channel.for_task(task(flip_prob=0.2, drop_prob=0.2), num_envs=64, seed=seed)
         ch.transmit(np.zeros((64, 2, 7), dtype=np.uint8))
         return ch.received()
 
@@ -130,7 +130,7 @@ def test_multi_recipient_map_with_slots() -> None:
     t = task(n_agents=3, recipients=((1, 2), (0,), (0,)))
     np.testing.assert_array_equal(t.slot_senders, [[1, 2], [0, -1], [0, -1]])
     assert t.slots == 2
-    ch = Channel(t, num_envs=1, seed=0)
+    ch = Channel.for_task(t, num_envs=1, seed=0)
     sent = np.array([[[1, 0, 0, 0, 0, 0, 1], [0, 1, 0, 0, 0, 1, 0], [0, 0, 1, 0, 1, 0, 0]]], dtype=np.uint8)
     ch.transmit(sent)
     got = ch.received()[0]
@@ -144,7 +144,7 @@ def test_multi_recipient_map_with_slots() -> None:
 def test_a_dropped_message_is_lost_for_every_recipient() -> None:
     t = task(n_agents=3, recipients=((1, 2), (0,), (0,)), drop_prob=0.5)
     B = 512
-    ch = Channel(t, num_envs=B, seed=3)
+    ch = Channel.for_task(t, num_envs=B, seed=3)
     dropped = ch.transmit(np.ones((B, 3, 7), dtype=np.uint8))
     got = ch.received()
     assert dropped[:, 0].any() and not dropped[:, 0].all()

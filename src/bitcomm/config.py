@@ -33,6 +33,28 @@ def _check_count(name: str, value: object, least: int, most: int, why: str) -> N
         raise bad_value(name, value, f"must be an integer in [{least}, {most}] ({why})")
 
 
+def recipient_matrix(recipients: tuple[tuple[int, ...], ...], n_agents: int) -> np.ndarray:
+    """Boolean `(n, n)` from one tuple of recipients per sender: `[j, x]` is True when x receives j's message."""
+    mat = np.zeros((n_agents, n_agents), dtype=bool)
+    for j, rec in enumerate(recipients):
+        mat[j, list(rec)] = True
+    return mat
+
+
+def slot_table(recipients: np.ndarray) -> np.ndarray:
+    """`(n, slots)` int from a recipient matrix: the sender heard in each input slot of each agent, -1 for none.
+
+    An agent's message input holds one K-bit slot per sender it hears, ordered by sender index; `slots`
+    is the largest number of senders any agent hears (at least 1, so every agent has an input).
+    """
+    n = recipients.shape[0]
+    senders = [np.flatnonzero(recipients[:, x]) for x in range(n)]
+    table = -np.ones((n, max(1, max(len(s) for s in senders))), dtype=np.int64)
+    for x, s in enumerate(senders):
+        table[x, : len(s)] = s
+    return table
+
+
 @dataclass(frozen=True)
 class EnvConfig:
     """The goal-exchange grid world (SPEC section 1)."""
@@ -154,11 +176,7 @@ class TaskConfig:
     @property
     def recipient_matrix(self) -> np.ndarray:
         """Boolean `(n, n)`: `[j, x]` is True when x receives j's message."""
-        n = self.env.n_agents
-        mat = np.zeros((n, n), dtype=bool)
-        for j, rec in enumerate(self.recipient_lists):
-            mat[j, list(rec)] = True
-        return mat
+        return recipient_matrix(self.recipient_lists, self.env.n_agents)
 
     @property
     def slot_senders(self) -> np.ndarray:
@@ -167,13 +185,7 @@ class TaskConfig:
         An agent's message input holds one K-bit slot per sender it hears, ordered by sender index;
         `slots` is the largest number of senders any agent hears (1 in the paper).
         """
-        mat = self.recipient_matrix
-        senders = [np.flatnonzero(mat[:, x]) for x in range(self.env.n_agents)]
-        slots = max(1, max(len(s) for s in senders))
-        table = -np.ones((self.env.n_agents, slots), dtype=np.int64)
-        for x, s in enumerate(senders):
-            table[x, : len(s)] = s
-        return table
+        return slot_table(self.recipient_matrix)
 
     @property
     def slots(self) -> int:

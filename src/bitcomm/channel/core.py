@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
-from bitcomm.config import TaskConfig
+from bitcomm.config import ChannelConfig, TaskConfig
 
 if TYPE_CHECKING:
     import torch
@@ -74,20 +74,32 @@ def bits_to_onehot(bits: ArrayT) -> ArrayT:
 class Channel:
     """Delay queue, drops and flips for B independent episodes of n agents."""
 
-    def __init__(self, task: TaskConfig, num_envs: int, seed: int | np.random.SeedSequence | None = None) -> None:
-        self.task = task
+    def __init__(
+        self,
+        config: ChannelConfig,
+        slot_senders: np.ndarray,
+        num_envs: int,
+        seed: int | np.random.SeedSequence | None = None,
+    ) -> None:
+        """`slot_senders (n, slots)`: the sender heard in each input slot of each agent, -1 for none
+        (`bitcomm.config.slot_table`); `config.recipients` is not read, the table says who hears whom."""
+        self.config = config
         self.num_envs = num_envs
-        cfg = task.channel
-        self.bits, self.delay = cfg.bits, cfg.delay
-        self.flip_prob, self.drop_prob = cfg.flip_prob, cfg.drop_prob
-        n = task.env.n_agents
-        self.slot_senders = task.slot_senders
+        self.bits, self.delay = config.bits, config.delay
+        self.flip_prob, self.drop_prob = config.flip_prob, config.drop_prob
+        n = slot_senders.shape[0]
+        self.slot_senders = np.asarray(slot_senders, dtype=np.int64)
         self._slot_mask = (self.slot_senders >= 0)[None, :, :, None]  # (1, n, slots, 1)
         self._slot_index = np.maximum(self.slot_senders, 0)
         # queue[k] holds what was sent k steps ago, after noise; a ring indexed by the clock
         self._queue = np.zeros((self.delay, num_envs, n, self.bits), dtype=np.uint8)
         self._clock = 0
         self.rng = np.random.default_rng(seed)
+
+    @classmethod
+    def for_task(cls, task: TaskConfig, num_envs: int, seed: int | np.random.SeedSequence | None = None) -> Channel:
+        """The grid task's channel: its config, and who hears whom from its recipients."""
+        return cls(task.channel, task.slot_senders, num_envs, seed)
 
     def reset(self, mask: np.ndarray | None = None) -> None:
         """Forget messages in flight for the episodes in `mask` (all when None)."""

@@ -53,7 +53,7 @@ class VecGoalExchange:
         seq = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
         env_seed, channel_seed = seq.spawn(2)
         self.core = GoalExchangeCore(task.env, num_envs, seed=env_seed, autoreset=autoreset)
-        self.channel = Channel(task, num_envs, seed=channel_seed)
+        self.channel = Channel.for_task(task, num_envs, seed=channel_seed)
         self._received = self.channel.received()
 
     def reset(self, mask: np.ndarray | None = None) -> Observation:
