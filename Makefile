@@ -1,4 +1,5 @@
-# Two commands for a newcomer: `make train` and `make test`. Both create .venv on first use.
+# Two commands for a newcomer: `make train` and `make test`. Both create .venv on first use, with the
+# optional extras (mpe: MPE2 tasks for the channel wrapper; ray: the Ray backend) so the tests cover them.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -14,7 +15,7 @@ THREADS ?=
 $(BIN)/bitcomm: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q $(TORCH)
-	$(BIN)/pip install -q -e ".[dev]"
+	$(BIN)/pip install -q -e ".[dev,mpe,ray]"
 	touch $(BIN)/bitcomm
 
 install: $(BIN)/bitcomm
