@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
 if TYPE_CHECKING:
+    from bitcomm.envs.channel_wrapper import BitChannel
     from bitcomm.policies.controller import Controller
     from bitcomm.policies.evaluation import evaluate
 
@@ -20,9 +21,13 @@ try:
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0"
 
-__all__ = ["ChannelConfig", "Controller", "EnvConfig", "TaskConfig", "evaluate", "__version__"]
+__all__ = ["BitChannel", "ChannelConfig", "Controller", "EnvConfig", "TaskConfig", "evaluate", "__version__"]
 
-_LAZY = {"Controller": "bitcomm.policies.controller", "evaluate": "bitcomm.policies.evaluation"}
+_LAZY = {
+    "BitChannel": "bitcomm.envs.channel_wrapper",
+    "Controller": "bitcomm.policies.controller",
+    "evaluate": "bitcomm.policies.evaluation",
+}
 
 
 def __getattr__(name: str) -> Any:

@@ -1,0 +1,239 @@
+"""
+# BitChannel: bitcomm's K-bit channel on any PettingZoo `ParallelEnv` (SPEC section 8)
+
+| Import             | `from bitcomm.envs.channel_wrapper import BitChannel` (or `bitcomm.BitChannel`)  |
+|--------------------|----------------------------------------------------------------------------------|
+| Wraps              | any `ParallelEnv` with Box observations and Discrete or Box actions               |
+| Action Shape       | `Dict(action=<inner action space>, message=MultiBinary(K))`                      |
+| Observation Shape  | `Dict(observation=<inner Box>, messages=MultiBinary((slots, K)))`                 |
+| State              | the inner `state()` and `state_space`, unchanged, when the inner env has them     |
+
+Each agent's action gains K message bits; each observation gains the bits received from the
+senders the topology gives it. The channel is `bitcomm.channel.Channel`, the grid's own: bits sent
+at step t are in the observation returned by step t + delay - 1 (acted on at step t + delay), zeros
+before the first delivery and after `reset()`; each bit flips in transit with `flip_prob`, each
+message is dropped (every recipient reads zeros) with `drop_prob`. Full description and an
+example: docs/channel_wrapper.md.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from bitcomm.channel.core import Channel
+from bitcomm.channel.topology import Topology, recipients_of
+from bitcomm.config import ChannelConfig, slot_table
+from bitcomm.errors import bad_value
+
+AgentID = str
+StepReturn = tuple[
+    dict[AgentID, dict[str, np.ndarray]],
+    dict[AgentID, float],
+    dict[AgentID, bool],
+    dict[AgentID, bool],
+    dict[AgentID, dict[str, Any]],
+]
+SEED_SALT = 0xB17
+"""Mixed into `reset(seed=s)` for the channel's noise, so it never shares a stream with the inner env."""
+
+
+def channel_seed(seed: int) -> np.random.SeedSequence:
+    """The channel noise's seed for an episode reset with `seed` (the inner env gets `seed` itself)."""
+    return np.random.SeedSequence([seed, SEED_SALT])
+
+
+class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
+    """A PettingZoo `ParallelEnv` whose agents also talk through a K-bit noisy, delayed channel.
+
+    Spaces, for each agent `a` of `possible_agents`:
+
+    - `observation_space(a) = Dict(observation=<inner Box>, messages=MultiBinary((slots, K)))`: row s of
+      `messages` holds the bits from the s-th sender that `a` hears, senders in `possible_agents` order;
+      rows beyond the senders `a` hears stay zero; `slots` is the most senders any agent hears (>= 1).
+    - `action_space(a) = Dict(action=<inner Discrete or Box>, message=MultiBinary(K))`.
+
+    `step(actions)` takes actions for the live agents (`agents`); actions for agents that have left
+    are ignored, and such agents send zeros (their slot reads zeros, whatever the noise). Rewards,
+    terminations, truncations and infos are the inner env's; `infos[a]["message_dropped"]` says
+    whether the message `a` sent this step was dropped.
+
+    Attributes for learners: `inner` (the wrapped env), `possible_agents`, `agents`, `bits`, `delay`,
+    `channel_config` (`ChannelConfig`), `recipients` (`(n, n)` bool, `[j, x]`: x hears j, in
+    `possible_agents` order), `slot_senders` (`(n, slots)` int, -1 padding; `bitcomm.config.slot_table`),
+    `fixed_actions` (agent -> the inner action it always takes; a learner ignores those action heads),
+    `metadata` (the inner one, name suffixed `_bitchannel`), and `state_space` when the inner env has one.
+    """
+
+    def __init__(
+        self,
+        env: ParallelEnv,
+        bits: int = 7,
+        delay: int = 1,
+        flip_prob: float = 0.0,
+        drop_prob: float = 0.0,
+        topology: Topology = "all",
+        seed: int | None = None,
+        fixed_actions: Mapping[str, Any] | None = None,
+    ) -> None:
+        if not isinstance(env, ParallelEnv):
+            raise bad_value(
+                "env",
+                type(env).__name__,
+                "must be a PettingZoo ParallelEnv (pettingzoo.utils.aec_to_parallel converts an AEC env)",
+            )
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+            raise bad_value("seed", seed, "must be None or an integer >= 0")
+        self.inner = env
+        self.possible_agents: list[AgentID] = list(env.possible_agents)
+        self.agents: list[AgentID] = []
+        n = len(self.possible_agents)
+        self._index = {a: i for i, a in enumerate(self.possible_agents)}
+        self.recipients = recipients_of(self.possible_agents, topology)
+        self.slot_senders = slot_table(self.recipients)
+        # validates bits, delay and the probabilities, one line each
+        self.channel_config = ChannelConfig(
+            bits=bits,
+            recipients=tuple(tuple(int(x) for x in np.flatnonzero(row)) for row in self.recipients),
+            delay=delay,
+            flip_prob=flip_prob,
+            drop_prob=drop_prob,
+        )
+        self.bits, self.delay = self.channel_config.bits, self.channel_config.delay
+        slots = self.slot_senders.shape[1]
+        inner_obs = {a: _inner_space(env, a, "observation", (spaces.Box,)) for a in self.possible_agents}
+        inner_act = {a: _inner_space(env, a, "action", (spaces.Discrete, spaces.Box)) for a in self.possible_agents}
+        self.fixed_actions = _check_fixed(fixed_actions, inner_act)
+        # one space object per agent, built once: PettingZoo requires the same object on every call
+        self.observation_spaces = {
+            a: spaces.Dict(observation=inner_obs[a], messages=spaces.MultiBinary((slots, self.bits)))
+            for a in self.possible_agents
+        }
+        self.action_spaces = {
+            a: spaces.Dict(action=inner_act[a], message=spaces.MultiBinary(self.bits)) for a in self.possible_agents
+        }
+        if hasattr(env, "state_space"):
+            self.state_space = env.state_space
+        self.metadata = dict(getattr(env, "metadata", {}))
+        self.metadata["name"] = f"{self.metadata.get('name', type(env).__name__)}_bitchannel"
+        self.render_mode = getattr(env, "render_mode", None)
+        self._seed = seed  # used by the first reset() that is given no seed
+        self._channel = self._new_channel(None if seed is None else channel_seed(int(seed)))
+        # who was live when each message in flight was sent: the same delay queue, noise-free, one bit
+        self._alive = Channel(ChannelConfig(bits=1, delay=self.delay), self.slot_senders, num_envs=1)
+        self._n = n
+
+    def _new_channel(self, seed: np.random.SeedSequence | None) -> Channel:
+        return Channel(self.channel_config, self.slot_senders, num_envs=1, seed=seed)
+
+    def observation_space(self, agent: AgentID) -> spaces.Dict:
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent: AgentID) -> spaces.Dict:
+        return self.action_spaces[agent]
+
+    def reset(
+        self, seed: int | None = None, options: dict | None = None
+    ) -> tuple[dict[AgentID, dict[str, np.ndarray]], dict[AgentID, dict[str, Any]]]:
+        """Reset the inner env and empty the channel. `seed` seeds both (the channel from
+        `SeedSequence([seed, 0xB17])`); without one, the first reset uses the constructor's `seed` and
+        later ones continue the streams."""
+        if seed is None:
+            seed, self._seed = self._seed, None
+        else:
+            self._seed = None
+        if seed is not None:
+            self._channel = self._new_channel(channel_seed(int(seed)))
+        else:
+            self._channel.reset()
+        self._alive.reset()
+        observations, infos = self.inner.reset(seed=seed, options=options)
+        self.agents = list(self.inner.agents)
+        empty = np.zeros((self._n,) + self.slot_senders.shape[1:] + (self.bits,), dtype=np.int8)
+        return self._augment(observations, empty), infos
+
+    def step(self, actions: dict[AgentID, dict[str, Any]]) -> StepReturn:
+        """One step of the inner env with the live agents' inner actions, then one step of the channel."""
+        K = self.bits
+        sent = np.zeros((1, self._n, K), dtype=np.uint8)
+        alive = np.zeros((1, self._n, 1), dtype=np.uint8)
+        inner_actions: dict[AgentID, Any] = {}
+        unknown = set(actions) - set(self._index)
+        if unknown:
+            raise KeyError(f"actions for unknown agents {sorted(unknown)}; agents are {self.possible_agents}")
+        for agent in self.agents:
+            if agent not in actions:
+                raise KeyError(f"no action for live agent {agent!r}")
+            action = actions[agent]
+            message = np.asarray(action["message"])
+            if message.shape != (K,) or not np.isin(message, (0, 1)).all():
+                raise ValueError(f"{agent}: message must be {K} bits in {{0, 1}}, got {message!r}")
+            i = self._index[agent]
+            sent[0, i], alive[0, i] = message, 1
+            inner_actions[agent] = self.fixed_actions.get(agent, action["action"])
+        live = list(self.agents)
+        observations, rewards, terminations, truncations, infos = self.inner.step(inner_actions)
+        dropped = self._channel.transmit(sent)[0]
+        self._alive.transmit(alive)
+        received = (self._channel.received()[0] * self._alive.received()[0]).astype(np.int8)
+        infos = {a: dict(info) for a, info in infos.items()}
+        for agent in live:
+            infos.setdefault(agent, {})["message_dropped"] = bool(dropped[self._index[agent]])
+        self.agents = list(self.inner.agents)
+        return self._augment(observations, received), rewards, terminations, truncations, infos
+
+    def _augment(self, observations: dict[AgentID, Any], received: np.ndarray) -> dict[AgentID, dict[str, np.ndarray]]:
+        """Each inner observation with the `(slots, K)` bits its agent received this step."""
+        return {
+            a: {"observation": obs, "messages": received[self._index[a]].copy()}
+            for a, obs in observations.items()
+            if a in self._index
+        }
+
+    def state(self) -> np.ndarray:
+        """The inner env's `state()` (messages in flight are not part of it)."""
+        return self.inner.state()
+
+    def render(self) -> Any:
+        return self.inner.render()
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def _inner_space(env: ParallelEnv, agent: AgentID, kind: str, allowed: tuple[type, ...]) -> spaces.Space:
+    """The inner env's observation or action space of `agent`, or one error line if its type is unsupported."""
+    space: spaces.Space = getattr(env, f"{kind}_space")(agent)
+    if not isinstance(space, allowed):
+        names = " or ".join(t.__name__ for t in allowed)
+        raise bad_value(f"{kind}_space({agent!r})", space, f"BitChannel wraps {kind} spaces of type {names} only")
+    return space
+
+
+def _check_fixed(fixed: Mapping[str, Any] | None, action_spaces: dict[AgentID, spaces.Space]) -> dict[AgentID, Any]:
+    """`fixed_actions` as a dict of valid inner actions, each checked against its agent's space."""
+    if fixed is None:
+        return {}
+    if not isinstance(fixed, Mapping):
+        raise bad_value("fixed_actions", fixed, "must be a mapping from agent name to an inner action")
+    out: dict[AgentID, Any] = {}
+    for agent, value in fixed.items():
+        if agent not in action_spaces:
+            raise bad_value("fixed_actions", agent, f"is not an agent; agents are {list(action_spaces)}")
+        space = action_spaces[agent]
+        action: Any = value
+        if isinstance(space, spaces.Box):
+            try:
+                action = np.asarray(value, dtype=space.dtype)
+            except (TypeError, ValueError):
+                action = None
+        elif isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+            action = int(value)
+        if action is None or isinstance(value, bool) or not space.contains(action):
+            raise bad_value(f"fixed_actions[{agent!r}]", value, f"must be an action of {space}")
+        out[agent] = action
+    return out
