@@ -121,7 +121,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         self.metadata = dict(getattr(env, "metadata", {}))
         self.metadata["name"] = f"{self.metadata.get('name', type(env).__name__)}_bitchannel"
         self.render_mode = getattr(env, "render_mode", None)
-        self._seed = seed  # used by the first reset() that is given no seed
+        self._first_seed = seed  # used by the first reset() if it is given no seed
         self._channel = self._new_channel(None if seed is None else channel_seed(int(seed)))
         # who was live when each message in flight was sent: the same delay queue, noise-free, one bit
         self._alive = Channel(ChannelConfig(bits=1, delay=self.delay), self.slot_senders, num_envs=1)
@@ -142,10 +142,8 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         """Reset the inner env and empty the channel. `seed` seeds both (the channel from
         `SeedSequence([seed, 0xB17])`); without one, the first reset uses the constructor's `seed` and
         later ones continue the streams."""
-        if seed is None:
-            seed, self._seed = self._seed, None
-        else:
-            self._seed = None
+        seed = self._first_seed if seed is None else seed
+        self._first_seed = None
         if seed is not None:
             self._channel = self._new_channel(channel_seed(int(seed)))
         else:
@@ -223,7 +221,7 @@ def _check_fixed(fixed: Mapping[str, Any] | None, action_spaces: dict[AgentID, s
     out: dict[AgentID, Any] = {}
     for agent, value in fixed.items():
         if agent not in action_spaces:
-            raise bad_value("fixed_actions", agent, f"is not an agent; agents are {list(action_spaces)}")
+            raise bad_value("fixed_actions", agent, f"keys must be agents of the env: {list(action_spaces)}")
         space = action_spaces[agent]
         action: Any = value
         if isinstance(space, spaces.Box):

@@ -1,0 +1,309 @@
+"""BitChannel, the bit channel on any PettingZoo ParallelEnv (SPEC section 8): it passes PettingZoo's
+conformance test on several inner envs; bits sent at step t are in the observation returned by step
+t + delay - 1, zeros before; the topology routes each sender to its slot; flips act per bit and drops
+per message at their rates; noise is seeded; an agent that left sends zeros; fixed actions replace
+the inner action; the inner state is kept; bad input gets one line."""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+from bitcomm.channel.core import index_to_bits
+from bitcomm.channel.topology import recipients_of
+from bitcomm.envs import goal_exchange_v0
+from bitcomm.envs.channel_wrapper import BitChannel
+from bitcomm.errors import ConfigError
+
+
+class Toy(ParallelEnv):
+    """Three agents a, b, c with a Box observation (the step count and a seeded draw) and Discrete(3)
+    actions; c leaves after `c_steps` steps, the others are truncated after `steps`. No state()."""
+
+    metadata = {"name": "toy_v0"}
+
+    def __init__(self, steps: int = 8, c_steps: int | None = None, action_space: spaces.Space | None = None) -> None:
+        self.possible_agents = ["a", "b", "c"]
+        self.agents: list[str] = []
+        self.steps, self.c_steps = steps, c_steps
+        self._obs = spaces.Box(0.0, 1e6, (2,), np.float32)
+        self._act = action_space if action_space is not None else spaces.Discrete(3)
+        self.received: list[dict[str, Any]] = []  # the inner actions of every step
+        self.rng = np.random.default_rng()
+        self.t = 0
+
+    def observation_space(self, agent: str) -> spaces.Space:
+        return self._obs
+
+    def action_space(self, agent: str) -> spaces.Space:
+        return self._act
+
+    def _observe(self) -> dict[str, np.ndarray]:
+        return {a: np.array([self.t, self.rng.random()], dtype=np.float32) for a in self.agents}
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        self.agents, self.t = self.possible_agents[:], 0
+        return self._observe(), {a: {} for a in self.agents}
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        self.received.append(dict(actions))
+        self.t += 1
+        live = self.agents
+        terminated = {a: a == "c" and self.t == self.c_steps for a in live}
+        truncated = {a: self.t >= self.steps for a in live}
+        obs = self._observe()
+        self.agents = [a for a in live if not (terminated[a] or truncated[a])]
+        return obs, dict.fromkeys(live, 0.0), terminated, truncated, {a: {"t": self.t} for a in live}
+
+    def render(self) -> str:
+        return "toy frame"
+
+
+def mpe(name: str, **kwargs: Any) -> Callable[[], ParallelEnv]:
+    def make() -> ParallelEnv:
+        module = pytest.importorskip(f"mpe2.{name}")
+        return module.parallel_env(**kwargs)
+
+    return make
+
+
+INNER = {
+    "speaker_listener": mpe("simple_speaker_listener_v4"),
+    "spread_3": mpe("simple_spread_v3", N=3),
+    "reference": mpe("simple_reference_v3"),
+    "spread_continuous": mpe("simple_spread_v3", N=3, continuous_actions=True),
+    "toy_leaving": lambda: Toy(steps=10, c_steps=3),
+}
+
+
+def zero_action(space: spaces.Space) -> Any:
+    return np.zeros(space.shape, space.dtype) if isinstance(space, spaces.Box) else 0
+
+
+def run(env: BitChannel, messages: Callable[[int, str], np.ndarray], seed: int | None = 0) -> list[dict]:
+    """Reset, then step to the end with the inner action 0 and `messages(t, agent)`; the observations of each step."""
+    obs, _ = env.reset(seed=seed)
+    out, t = [obs], 0
+    while env.agents:
+        actions = {a: {"action": zero_action(env.inner.action_space(a)), "message": messages(t, a)} for a in env.agents}
+        out.append(env.step(actions)[0])
+        t += 1
+    return out
+
+
+@pytest.mark.parametrize("name", INNER)
+def test_parallel_api(name: str) -> None:
+    env = BitChannel(INNER[name](), bits=4, delay=2, flip_prob=0.1, drop_prob=0.1, topology="ring", seed=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # PettingZoo reports soft failures as warnings
+        parallel_api_test(env, num_cycles=100)
+
+
+def test_parallel_seed_test_with_noise() -> None:
+    make = INNER["spread_3"]
+    parallel_seed_test(lambda: BitChannel(make(), bits=5, flip_prob=0.2, drop_prob=0.2), num_cycles=50)
+
+
+def test_seeded_reproducible_and_different_with_another_seed() -> None:
+    def episode(seed: int | None, ctor_seed: int | None = None) -> np.ndarray:
+        env = BitChannel(Toy(steps=20), bits=8, flip_prob=0.3, drop_prob=0.2, seed=ctor_seed)
+        steps = run(env, lambda t, a: np.zeros(8, np.int8), seed=seed)
+        return np.stack([np.concatenate([o["observation"], o["messages"].ravel()]) for s in steps for o in s.values()])
+
+    assert np.array_equal(episode(3), episode(3))
+    assert not np.array_equal(episode(3), episode(4))
+    assert np.array_equal(episode(None, ctor_seed=5), episode(None, ctor_seed=5))  # the constructor's seed
+
+
+def test_spaces_and_attributes() -> None:
+    inner = INNER["speaker_listener"]()
+    env = BitChannel(inner, bits=3, topology=[("speaker_0", "listener_0")], fixed_actions={"speaker_0": 0})
+    assert env.observation_space("listener_0") == spaces.Dict(
+        observation=inner.observation_space("listener_0"), messages=spaces.MultiBinary((1, 3))
+    )
+    assert env.action_space("speaker_0") == spaces.Dict(action=spaces.Discrete(3), message=spaces.MultiBinary(3))
+    assert env.possible_agents == ["speaker_0", "listener_0"] and env.inner is inner
+    assert (env.bits, env.delay, env.channel_config.bits) == (3, 1, 3)
+    assert env.recipients.tolist() == [[False, True], [False, False]]
+    assert env.slot_senders.tolist() == [[-1], [0]]
+    assert env.fixed_actions == {"speaker_0": 0}
+    assert env.metadata["name"] == "simple_speaker_listener_v4_bitchannel"
+    obs, _ = env.reset(seed=0)
+    for agent, o in obs.items():
+        assert env.observation_space(agent).contains(o)
+    # the inner state is kept
+    assert env.state_space is inner.state_space
+    assert np.array_equal(env.state(), inner.state())
+    env.close()
+
+
+def test_no_inner_state_no_state() -> None:
+    env = BitChannel(Toy())
+    env.reset(seed=0)
+    assert not hasattr(env, "state_space")
+    with pytest.raises(NotImplementedError):
+        env.state()
+    assert env.render() == "toy frame"
+
+
+def pattern(t: int, agent: str) -> np.ndarray:
+    """A distinct 6-bit message for each step and agent (never all zeros)."""
+    return index_to_bits(np.int64(1 + 3 * t + "abc".index(agent)), 6).astype(np.int8)
+
+
+@pytest.mark.parametrize("delay", [1, 2, 3])
+def test_bits_sent_at_t_are_observed_at_t_plus_delay_minus_one(delay: int) -> None:
+    env = BitChannel(Toy(steps=8), bits=6, delay=delay, topology="all")
+    steps = run(env, pattern)
+    assert all(not o["messages"].any() for o in steps[0].values())  # reset() returns zeros
+    for t, obs in enumerate(steps[1:]):  # obs returned by step t
+        sent_at = t - delay + 1
+        for agent, o in obs.items():
+            senders = [s for s in "abc" if s != agent]
+            want = [pattern(sent_at, s) if sent_at >= 0 else np.zeros(6, np.int8) for s in senders]
+            assert np.array_equal(o["messages"], np.stack(want)), (t, agent)
+    # a reset forgets what is in flight
+    obs, _ = env.reset()
+    assert all(not o["messages"].any() for o in obs.values())
+
+
+def test_topology_matrices() -> None:
+    agents = ["a", "b", "c"]
+    assert recipients_of(agents, "all").tolist() == [[0, 1, 1], [1, 0, 1], [1, 1, 0]]
+    assert recipients_of(agents, "ring").tolist() == [[0, 1, 0], [0, 0, 1], [1, 0, 0]]  # i tells i + 1
+    assert recipients_of(agents, [("c", "a"), ("b", "a")]).tolist() == [[0, 0, 0], [1, 0, 0], [1, 0, 0]]
+    assert recipients_of(agents, lambda s, r: s < r).tolist() == [[0, 1, 1], [0, 0, 1], [0, 0, 0]]
+
+
+@pytest.mark.parametrize(
+    ("topology", "heard"),
+    [
+        ("all", {"a": "bc", "b": "ac", "c": "ab"}),
+        ("ring", {"a": "c", "b": "a", "c": "b"}),
+        ([("c", "a"), ("b", "a")], {"a": "bc", "b": "", "c": ""}),
+        (lambda s, r: s < r, {"a": "", "b": "a", "c": "ab"}),
+    ],
+)
+def test_topology_routes_each_sender_to_its_slot(topology: Any, heard: dict[str, str]) -> None:
+    env = BitChannel(Toy(steps=2), bits=6, topology=topology)
+    obs = run(env, pattern)[1]  # delay 1: what was sent at step 0
+    slots = max(len(s) for s in heard.values())
+    for agent, senders in heard.items():
+        want = np.zeros((slots, 6), np.int8)
+        for s, sender in enumerate(senders):  # senders in possible_agents order
+            want[s] = pattern(0, sender)
+        assert np.array_equal(obs[agent]["messages"], want), agent
+
+
+def test_flips_per_bit_at_their_rate() -> None:
+    p, steps, bits = 0.1, 200, 30
+    env = BitChannel(Toy(steps=steps), bits=bits, flip_prob=p, seed=0)
+    received = np.stack(
+        [o["messages"] for obs in run(env, lambda t, a: np.zeros(bits, np.int8))[1:] for o in obs.values()]
+    )
+    n = received.size  # 200 steps x 3 agents x 2 slots x 30 bits
+    assert abs(received.mean() - p) < 4 * np.sqrt(p * (1 - p) / n)
+    # flips are independent per bit: whole messages are not flipped together
+    assert 0 < received.sum(-1).mean() < bits
+
+
+def test_drops_whole_messages_at_their_rate_for_every_recipient() -> None:
+    p, steps, bits = 0.3, 200, 5
+    env = BitChannel(Toy(steps=steps), bits=bits, drop_prob=p, seed=0)
+    env.reset(seed=0)
+    read_zero = []
+    for _ in range(steps):
+        obs, _, _, _, infos = env.step({a: {"action": 0, "message": np.ones(bits, np.int8)} for a in env.agents})
+        rows = np.stack([obs[a]["messages"] for a in "abc"])  # (3, 2, K), each a message from another agent
+        assert np.isin(rows.sum(-1), (0, bits)).all()  # a message arrives whole or not at all
+        # agent a is heard in slot 0 by b and c; b in slot 1 by a and slot 0 by c; c in slot 1 by a and b
+        heard = {"a": [rows[1, 0], rows[2, 0]], "b": [rows[0, 0], rows[2, 1]], "c": [rows[0, 1], rows[1, 1]]}
+        for sender, copies in heard.items():
+            zero = [not c.any() for c in copies]
+            assert zero[0] == zero[1] == infos[sender]["message_dropped"]  # every recipient reads zeros
+            read_zero.append(zero[0])
+    rate, n = np.mean(read_zero), len(read_zero)
+    assert abs(rate - p) < 4 * np.sqrt(p * (1 - p) / n)
+
+
+def test_an_agent_that_left_sends_zeros() -> None:
+    # c leaves after 2 steps; with delay 2 its last message (step 1) is read with step 2's observation
+    env = BitChannel(Toy(steps=8, c_steps=2), bits=6, delay=2)
+    steps = run(env, lambda t, a: np.ones(6, np.int8))
+    from_c = [obs["a"]["messages"][1] for obs in steps[1:]]  # a hears b then c
+    assert [int(m.sum()) for m in from_c] == [0, 6, 6, 0, 0, 0, 0, 0]
+    # with noise too: nothing from c once its messages in flight have arrived, noise on b's slot
+    env = BitChannel(Toy(steps=30, c_steps=2), bits=6, delay=2, flip_prob=0.5, seed=0)
+    steps = run(env, lambda t, a: np.zeros(6, np.int8))
+    assert not any(obs["a"]["messages"][1].any() for obs in steps[4:])
+    assert any(obs["a"]["messages"][0].any() for obs in steps[4:])
+
+
+def test_a_step_takes_actions_of_live_agents_only() -> None:
+    env = BitChannel(Toy(steps=8, c_steps=1), bits=2)
+    env.reset(seed=0)
+    act = {"action": 0, "message": np.ones(2, np.int8)}
+    infos = env.step(dict.fromkeys("abc", act))[4]
+    assert env.agents == ["a", "b"] and set(infos) == {"a", "b", "c"}
+    infos = env.step(dict.fromkeys("abc", act))[4]  # c's action is ignored: it has left
+    assert set(infos) == {"a", "b"} and env.inner.received[-1].keys() == {"a", "b"}
+    with pytest.raises(KeyError, match="'b'"):
+        env.step({"a": act})
+
+
+def test_fixed_actions_replace_the_inner_action() -> None:
+    toy = Toy(steps=3)
+    env = BitChannel(toy, bits=2, fixed_actions={"b": 2})
+    run(env, lambda t, a: np.zeros(2, np.int8))
+    assert [r["b"] for r in toy.received] == [2, 2, 2] and [r["a"] for r in toy.received] == [0, 0, 0]
+
+
+def test_fixed_actions_silence_the_speakers_own_comm_action() -> None:
+    # the speaker's comm action is fixed at 0, so the listener always sees comm one-hot [1, 0, 0]
+    env = BitChannel(INNER["speaker_listener"](), bits=3, fixed_actions={"speaker_0": 0})
+    env.reset(seed=0)
+    for _ in range(3):
+        actions = {a: {"action": 2, "message": np.ones(3, np.int8)} for a in env.agents}
+        obs = env.step(actions)[0]
+        assert obs["listener_0"]["observation"][-3:].tolist() == [1.0, 0.0, 0.0]
+
+
+BAD: dict[str, tuple[Callable[[], Any], str]] = {
+    "bits 0": (lambda: BitChannel(Toy(), bits=0), "bits=0"),
+    "bits 31": (lambda: BitChannel(Toy(), bits=31), "bits=31"),
+    "delay 0": (lambda: BitChannel(Toy(), delay=0), "delay=0"),
+    "flip -0.1": (lambda: BitChannel(Toy(), flip_prob=-0.1), "flip_prob=-0.1"),
+    "drop 1.5": (lambda: BitChannel(Toy(), drop_prob=1.5), "drop_prob=1.5"),
+    "not parallel": (lambda: BitChannel(goal_exchange_v0.env()), "env="),
+    "Dict observation": (lambda: BitChannel(goal_exchange_v0.parallel_env()), "observation_space('agent_0')"),
+    "MultiDiscrete action": (
+        lambda: BitChannel(Toy(action_space=spaces.MultiDiscrete([2, 2]))),
+        "action_space('a')=MultiDiscrete",
+    ),
+    "topology word": (lambda: BitChannel(Toy(), topology="star"), "topology='star'"),
+    "unknown agent": (lambda: BitChannel(Toy(), topology=[("a", "z")]), "'z' is not an agent"),
+    "self edge": (lambda: BitChannel(Toy(), topology=[("a", "a")]), "itself"),
+    "duplicate edge": (lambda: BitChannel(Toy(), topology=[("a", "b"), ("a", "b")]), "twice"),
+    "rule raises": (lambda: BitChannel(Toy(), topology=lambda s, r: 1 / 0), "ZeroDivisionError"),
+    "rule not bool": (lambda: BitChannel(Toy(), topology=lambda s, r: 1), "must return a bool"),
+    "fixed unknown": (lambda: BitChannel(Toy(), fixed_actions={"z": 0}), "fixed_actions='z'"),
+    "fixed outside": (lambda: BitChannel(Toy(), fixed_actions={"a": 3}), "fixed_actions['a']=3"),
+}
+
+
+@pytest.mark.parametrize("case", BAD)
+def test_bad_input_gets_one_line(case: str) -> None:
+    build, names = BAD[case]
+    with pytest.raises(ConfigError) as err:
+        build()
+    message = str(err.value)
+    assert "\n" not in message and names in message, message
