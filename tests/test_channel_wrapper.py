@@ -114,14 +114,17 @@ def test_parallel_seed_test_with_noise() -> None:
 
 
 def test_seeded_reproducible_and_different_with_another_seed() -> None:
-    def episode(seed: int | None, ctor_seed: int | None = None) -> np.ndarray:
+    def heard(seed: int | None, ctor_seed: int | None = None) -> np.ndarray:
+        """Every message heard in one noisy episode."""
         env = BitChannel(Toy(steps=20), bits=8, flip_prob=0.3, drop_prob=0.2, seed=ctor_seed)
-        steps = run(env, lambda t, a: np.zeros(8, np.int8), seed=seed)
-        return np.stack([np.concatenate([o["observation"], o["messages"].ravel()]) for s in steps for o in s.values()])
+        return np.stack(
+            [o["messages"] for obs in run(env, lambda t, a: np.zeros(8, np.int8), seed=seed) for o in obs.values()]
+        )
 
-    assert np.array_equal(episode(3), episode(3))
-    assert not np.array_equal(episode(3), episode(4))
-    assert np.array_equal(episode(None, ctor_seed=5), episode(None, ctor_seed=5))  # the constructor's seed
+    assert np.array_equal(heard(3), heard(3))
+    assert not np.array_equal(heard(3), heard(4))
+    assert np.array_equal(heard(None, ctor_seed=5), heard(None, ctor_seed=5))  # the constructor's seed
+    assert not np.array_equal(heard(None), heard(None))  # no seed at all: fresh noise
 
 
 def test_spaces_and_attributes() -> None:
@@ -258,6 +261,8 @@ def test_a_step_takes_actions_of_live_agents_only() -> None:
     assert set(infos) == {"a", "b"} and env.inner.received[-1].keys() == {"a", "b"}
     with pytest.raises(KeyError, match="'b'"):
         env.step({"a": act})
+    with pytest.raises(ValueError, match="b: message must be 2 bits"):
+        env.step({"a": act, "b": {"action": 0, "message": np.array([0, 2])}})
 
 
 def test_fixed_actions_replace_the_inner_action() -> None:

@@ -156,33 +156,43 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
 
     def step(self, actions: dict[AgentID, dict[str, Any]]) -> StepReturn:
         """One step of the inner env with the live agents' inner actions, then one step of the channel."""
-        K = self.bits
-        sent = np.zeros((1, self._n, K), dtype=np.uint8)
-        alive = np.zeros((1, self._n, 1), dtype=np.uint8)
-        inner_actions: dict[AgentID, Any] = {}
-        unknown = set(actions) - set(self._index)
+        unknown = actions.keys() - self._index.keys()
         if unknown:
             raise KeyError(f"actions for unknown agents {sorted(unknown)}; agents are {self.possible_agents}")
-        for agent in self.agents:
+        live = list(self.agents)  # actions of agents that have left are ignored
+        for agent in live:
             if agent not in actions:
                 raise KeyError(f"no action for live agent {agent!r}")
-            action = actions[agent]
-            message = np.asarray(action["message"])
-            if message.shape != (K,) or not np.isin(message, (0, 1)).all():
-                raise ValueError(f"{agent}: message must be {K} bits in {{0, 1}}, got {message!r}")
-            i = self._index[agent]
-            sent[0, i], alive[0, i] = message, 1
-            inner_actions[agent] = self.fixed_actions.get(agent, action["action"])
-        live = list(self.agents)
+        inner_actions = {a: self.fixed_actions.get(a, actions[a]["action"]) for a in live}
+        rows = [self._index[a] for a in live]
+        sent = np.zeros((1, self._n, self.bits), dtype=np.uint8)
+        sent[0, rows] = self._messages([actions[a]["message"] for a in live], live)
+        alive = np.zeros((1, self._n, 1), dtype=np.uint8)
+        alive[0, rows] = 1
         observations, rewards, terminations, truncations, infos = self.inner.step(inner_actions)
         dropped = self._channel.transmit(sent)[0]
         self._alive.transmit(alive)
         received = (self._channel.received()[0] * self._alive.received()[0]).astype(np.int8)
         infos = {a: dict(info) for a, info in infos.items()}
-        for agent in live:
-            infos.setdefault(agent, {})["message_dropped"] = bool(dropped[self._index[agent]])
+        for agent, i in zip(live, rows, strict=True):
+            infos.setdefault(agent, {})["message_dropped"] = bool(dropped[i])
         self.agents = list(self.inner.agents)
         return self._augment(observations, received), rewards, terminations, truncations, infos
+
+    def _messages(self, messages: list[Any], live: list[AgentID]) -> np.ndarray:
+        """The live agents' messages as one `(len(live), K)` array, checked at once: K bits in {0, 1} each."""
+        shape = (len(live), self.bits)
+        try:
+            bits = np.asarray(messages) if messages else np.zeros(shape)
+        except ValueError:  # messages of different lengths
+            bits = np.zeros((0,))
+        if bits.shape == shape and ((bits == 0) | (bits == 1)).all():
+            return bits
+        for agent, message in zip(live, messages, strict=True):  # name the first bad one
+            m = np.asarray(message)
+            if m.shape != (self.bits,) or not ((m == 0) | (m == 1)).all():
+                raise ValueError(f"{agent}: message must be {self.bits} bits in {{0, 1}}, got {message!r}")
+        raise ValueError(f"messages must be {self.bits} bits in {{0, 1}} each, got {messages!r}")
 
     def _augment(self, observations: dict[AgentID, Any], received: np.ndarray) -> dict[AgentID, dict[str, np.ndarray]]:
         """Each inner observation with the `(slots, K)` bits its agent received this step."""
