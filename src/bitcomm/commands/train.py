@@ -12,6 +12,7 @@ import argparse
 import os
 from pathlib import Path
 
+from bitcomm.commands.backend_flags import add_backend_flags, execution
 from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.flags import MAX_EVAL_EPISODES, MAX_JOBS, MAX_TRAIN_EPISODES, SEED, check_train, integer, out_dir
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
@@ -52,6 +53,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="final evaluation episodes, 0: none (default %(default)s)",
     )
     add_learning_flags(p)
+    add_backend_flags(p)
     add_task_flags(p)
     p.set_defaults(run=run)
 
@@ -86,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
             episodes=args.episodes,
             **learning_overrides(args),
         )
+    cfg = execution(args, cfg)
     check_train(cfg)
     threads = args.threads or default_threads()
     if threads is not None:
@@ -96,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
         f"run folder: {out}{' (resumed)' if args.resume else ''}; torch threads: {threads or 'OMP_NUM_THREADS'}",
         flush=True,
     )
-    checkpoint = train(cfg, out, resume=args.resume, progress=not args.quiet)
+    checkpoint = train(cfg, out, resume=args.resume, progress=not args.quiet, address=args.address)
     print(f"checkpoint: {checkpoint}")
     if args.eval_episodes:
         from bitcomm.commands.common import print_result
