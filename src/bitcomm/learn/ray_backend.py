@@ -88,7 +88,7 @@ def join(rollouts: list[dict[str, np.ndarray]]) -> Rollout:
     """Rollouts side by side as one (episodes joined, time padded with invalid steps to the longest); fresh
     writable arrays, whatever the object store handed back."""
     T = max(r["valid"].shape[0] for r in rollouts)
-    fields = {}
+    fields: dict[str, Any] = {}
     for name in Rollout._fields:
         parts = [r[name] for r in rollouts]
         if name in EPISODE_FIELDS:
@@ -100,7 +100,9 @@ def join(rollouts: list[dict[str, np.ndarray]]) -> Rollout:
             out[: p.shape[0], col : col + p.shape[1]] = p
             col += p.shape[1]
         fields[name] = out
-    return Rollout(**{k: v if k in ("length", "team_return", "success") else torch.from_numpy(v) for k, v in fields.items()})
+    numpy = ("length", "team_return", "success")
+    tensors: dict[str, Any] = {k: v if k in numpy else torch.from_numpy(v) for k, v in fields.items()}
+    return Rollout(**tensors)
 
 
 def connect(address: str | None, workers: int) -> bool:
@@ -117,8 +119,8 @@ def connect(address: str | None, workers: int) -> bool:
             else:
                 ray.init(address=address, log_to_driver=False, configure_logging=False)
         except (ConnectionError, RuntimeError, ValueError) as err:
-            reason = " ".join(str(err).split())[:200]
-            raise bad_value("address", address, f"no Ray cluster answers there ({type(err).__name__}: {reason})") from None
+            reason = f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
+            raise bad_value("address", address, f"no Ray cluster answers there ({reason})") from None
         started = True
     cpus = ray.cluster_resources().get("CPU", 0)
     if cpus < workers:
@@ -311,4 +313,3 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
         actors.stop()
         bar.close()
         logger.close()
-

@@ -41,9 +41,7 @@ from bitcomm.run_lock import run_lock
 
 
 # ---------------------------------------------------------------------------------------------- loop
-def train(
-    cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True, address: str | None = None
-) -> Path:
+def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True, address: str | None = None) -> Path:
     """Train in `cfg.mode` (or on Ray, at the cluster `address`) until `cfg.episodes` episodes are played;
     returns the latest checkpoint."""
     out = Path(out)
