@@ -30,7 +30,7 @@ TINY = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "
 @pytest.fixture(scope="module")
 def cluster() -> Iterator[str]:
     """A local Ray instance for the module; yields its address."""
-    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=80 * 2**20, log_to_driver=False)
+    ray.init("local", num_cpus=2, include_dashboard=False, object_store_memory=80 * 2**20, log_to_driver=False)
     yield ray.get_runtime_context().gcs_address
     ray.shutdown()
 
@@ -132,6 +132,27 @@ def test_async_keeps_its_staleness_bound_and_runs_move_between_local_and_ray(clu
     # Ray -> local: --resume without --backend continues in this process
     assert main(["train", *TINY, "--out", str(out), "--resume", "--episodes", "224"]) == 0
     assert [int(x["episodes"]) for x in rows(out)][-3:] == [192, 208, 224]
+
+
+def test_an_actor_that_cannot_start_stops_the_run_with_its_cause(cluster: str) -> None:
+    from bitcomm.errors import ConfigError
+    from bitcomm.learn.ray_backend import MAX_FAILURES, Actors
+
+    class Broken:  # a node without bitcomm's dependencies, say
+        def __init__(self, config: dict[str, Any]) -> None:
+            import no_such_module  # noqa: F401
+
+        def collect(self, *args: Any) -> None: ...
+
+    actors = Actors(tiny_config(workers=1))
+    ray.kill(actors.actors[0])
+    actors.cls = ray.remote(num_cpus=1)(Broken)
+    actors.launch(0, 0, None, 0)
+    for _ in range(MAX_FAILURES - 1):
+        assert actors.receive(None, 0) is None  # replaced, asked again
+    with pytest.raises(ConfigError, match="died 3 times in a row .*No module named 'no_such_module'"):
+        actors.receive(None, 0)
+    assert actors.restarts == MAX_FAILURES - 1
 
 
 @pytest.mark.parametrize(

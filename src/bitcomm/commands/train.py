@@ -3,7 +3,8 @@
 Learning options (`bitcomm.commands.learning_flags`, one per plain field of TrainConfig and ModelConfig)
 default to None, meaning "the recipe's value" (`--recipe reinforced|supervised|paper`); a flag typed on the command line
 overrides the recipe. `--resume` continues the run in `--out` from its latest checkpoint with the
-config it was started with (only `--episodes`, a new budget, may change).
+config it was started with (only `--episodes`, a new budget, may change, and where it runs: `--backend`,
+default local, `--workers`, `--staleness`; see `bitcomm.commands.backend_flags`).
 """
 
 from __future__ import annotations

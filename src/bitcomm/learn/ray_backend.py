@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import time
 import uuid
 from pathlib import Path
@@ -32,7 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.errors import bad_value
+from bitcomm.errors import ConfigError, bad_value
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.learn.run_folder import (
@@ -51,6 +52,9 @@ from bitcomm.policies.networks import PolicyNet
 
 ACTOR_PREFIX = "bitcomm-rollout"
 """Rollout actors are named `<prefix>-<run token>-<worker>.<generation>` (`ray list actors` shows them)."""
+MAX_FAILURES = 3
+"""An actor that dies this many times in a row before delivering a batch stops the run with the cause (a node
+that cannot start one: bitcomm or a dependency missing there) instead of being replaced forever."""
 SAMPLE_KEY = 1 << 31
 """Batch k samples moves and bits with `SeedSequence(seed, (SAMPLE_KEY, k))`, apart from its episodes' seeds."""
 EPISODE_FIELDS = ("length", "team_return", "success", "goal")
@@ -106,18 +110,23 @@ def join(rollouts: list[dict[str, np.ndarray]]) -> Rollout:
 
 
 def connect(address: str | None, workers: int) -> bool:
-    """Join the cluster at `address` (None: a Ray already started in this process, else a new local instance
-    with a CPU per actor); returns whether this call started Ray. One line if none answers or it is too small."""
+    """Join the cluster at `address`, shipping this bitcomm package to its workers (Ray's `py_modules`: the
+    nodes need its dependencies, not bitcomm); None: a Ray already started in this process, else a new local
+    instance with a CPU per actor. Returns whether this call started Ray; one line if no cluster answers or it
+    is too small."""
     import ray
+
+    import bitcomm
 
     started = False
     if not ray.is_initialized():
         try:
             if address is None:
                 cpus = max(workers, os.cpu_count() or 1)
-                ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False)
+                ray.init("local", num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False)
             else:
-                ray.init(address=address, log_to_driver=False, configure_logging=False)
+                code = {"py_modules": [str(Path(bitcomm.__file__).parent)]}
+                ray.init(address, runtime_env=code, log_to_driver=False, configure_logging=False)
         except (ConnectionError, RuntimeError, ValueError) as err:
             reason = f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
             raise bad_value("address", address, f"no Ray cluster answers there ({reason})") from None
@@ -128,6 +137,12 @@ def connect(address: str | None, workers: int) -> bool:
             ray.shutdown()
         raise bad_value("workers", workers, f"at most the Ray cluster's CPUs ({cpus:g}): each rollout actor takes one")
     return started
+
+
+def _cause(err: Exception) -> str:
+    """The last line of a Ray error (the exception that killed the actor), without colour codes."""
+    lines = [line.strip() for line in re.sub(r"\x1b\[[0-9;]*m", "", str(err)).splitlines() if line.strip()]
+    return lines[-1] if lines else type(err).__name__
 
 
 class Actors:
@@ -144,6 +159,7 @@ class Actors:
         self.actors = [self._start(w) for w in range(cfg.workers)]
         self.inflight: dict[Any, tuple[int, int]] = {}  # object ref -> (worker, batch)
         self.restarts = 0
+        self.failures = [0] * cfg.workers  # deaths in a row without a batch delivered
 
     def _start(self, w: int) -> Any:
         name = f"{ACTOR_PREFIX}-{self.token}-{w}.{self.generation[w]}"
@@ -158,13 +174,21 @@ class Actors:
         ready, _ = self.ray.wait(list(self.inflight), num_returns=1)
         w, batch = self.inflight.pop(ready[0])
         try:
-            return w, self.ray.get(ready[0])
-        except self.ray.exceptions.RayActorError:
+            result = self.ray.get(ready[0])
+        except self.ray.exceptions.RayActorError as err:
+            self.failures[w] += 1
+            if self.failures[w] >= MAX_FAILURES:
+                raise ConfigError(
+                    f"invalid backend='ray': rollout actor {w} died {MAX_FAILURES} times in a row before delivering "
+                    f"a batch (last: {_cause(err)})"
+                ) from None
             self.restarts += 1
             self.generation[w] += 1
             self.actors[w] = self._start(w)
             self.launch(w, batch, weights, version)
             return None
+        self.failures[w] = 0
+        return w, result
 
     def stop(self) -> None:
         for actor in self.actors:
