@@ -134,6 +134,24 @@ def test_async_keeps_its_staleness_bound_and_runs_move_between_local_and_ray(clu
     assert [int(x["episodes"]) for x in rows(out)][-3:] == [192, 208, 224]
 
 
+def test_joined_batches_keep_each_episode_and_pad_time_with_invalid_steps() -> None:
+    import numpy as np
+
+    from bitcomm.learn.ray_backend import RolloutWorker, join
+
+    worker = RolloutWorker(tiny_config(num_envs=4).to_dict())
+    weights = {k: v.numpy() for k, v in worker.policy.state_dict().items()}
+    # copies: a worker's arrays are its buffers, which its next batch overwrites (Ray copies them when they leave)
+    a, b = ({k: v.copy() for k, v in worker.collect(weights, 0, k)["rollout"].items()} for k in (0, 1))
+    ro = join([a, b])
+    Ta, Tb = a["valid"].shape[0], b["valid"].shape[0]
+    assert ro.valid.shape == (max(Ta, Tb), 8) and np.array_equal(ro.length, np.concatenate([a["length"], b["length"]]))
+    assert np.array_equal(ro.valid.sum(0).numpy(), ro.length)  # padding is invalid
+    assert np.array_equal(ro.moves[:Ta, :4].numpy(), a["moves"])
+    assert np.array_equal(ro.moves[:Tb, 4:].numpy(), b["moves"])
+    assert np.array_equal(worker.collect(weights, 0, 1)["rollout"]["moves"], b["moves"])  # batch 1 is batch 1
+
+
 def test_an_actor_that_cannot_start_stops_the_run_with_its_cause(cluster: str) -> None:
     from bitcomm.errors import ConfigError
     from bitcomm.learn.ray_backend import MAX_FAILURES, Actors
