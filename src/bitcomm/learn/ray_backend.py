@@ -51,7 +51,7 @@ from bitcomm.learn.run_folder import (
 from bitcomm.policies.networks import PolicyNet
 
 ACTOR_PREFIX = "bitcomm-rollout"
-"""Rollout actors are named `<prefix>-<run token>-<worker>.<generation>` (`ray list actors` shows them)."""
+"""Rollout actors are named `<prefix>-<run token>-<worker>.<generation>` (`ray.util.list_named_actors` lists them)."""
 MAX_FAILURES = 3
 """An actor that dies this many times in a row before delivering a batch stops the run with the cause (a node
 that cannot start one: bitcomm or a dependency missing there) instead of being replaced forever."""
