@@ -44,6 +44,7 @@ BAD_TEXT: dict[str, list[str]] = {
     "--vary": ["nonsense", "lr=", "lr=inf", "lr=abc", "hidden=-8", "delay=300", "flip_prob=2"],
     "--param": ["nonsense", "delay=", "delay=300", "flip_prob=nan", "act_delay=abc", "delay=1.5"],
     "--onnx": ["no/such/file.onnx", FILE],
+    "--address": ["nonsense", "host:0", "host:99999", "ray://", "127.0.0.1:6379"],  # the last: no --backend ray
 }
 """Text flags with a syntax of their own (`--onnx` of deploy reads a file; export's writes one)."""
 
@@ -61,7 +62,8 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
     ("variance", "--fit-batches"): {"0"},  # 0: critics not fitted
     ("variance", "--plateau"): {"0"},  # 0: always fit every batch
     # learning options: 0 turns a loss term or trick off; a huge value is allowed where it means "never"/"all"
-    (ALL, "--train-max-steps"): {"0", "1000000000000"},  # 0 or beyond max_steps: the task's own limit
+    (ALL, "--train-max-steps"): {"0", "1000000000000"},
+    (ALL, "--staleness"): {"0"},  # 0: synchronous  # 0 or beyond max_steps: the task's own limit
     (ALL, "--keep-checkpoints"): {"1000000000000"},  # keep them all
     (ALL, "--conv-stride"): {"1000000000000"},  # every layer down to one cell
     (ALL, "--checkpoint-seconds"): {"0", "1e300"},  # 0: every batch; huge: only at the end

@@ -198,7 +198,7 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
     for name, most in (("workers", MAX_JOBS), ("epochs", MAX_REPEATS)):
         if getattr(cfg, name) > most:
             raise bad_value(name.replace("_", "-"), getattr(cfg, name), f"must be an integer in [1, {most}]")
-    workers = cfg.workers if cfg.mode == "a3c" else 1
+    workers = cfg.workers if cfg.mode == "a3c" or cfg.backend == "ray" else 1
     learners = processes * workers
     wider = max(("hidden", "message_hidden"), key=lambda name: getattr(cfg.model, name))
     check_memory(wider.replace("_", "-"), getattr(cfg.model, wider), learners * network_bytes(cfg), "the networks")

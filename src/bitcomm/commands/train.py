@@ -3,7 +3,8 @@
 Learning options (`bitcomm.commands.learning_flags`, one per plain field of TrainConfig and ModelConfig)
 default to None, meaning "the recipe's value" (`--recipe reinforced|supervised|paper`); a flag typed on the command line
 overrides the recipe. `--resume` continues the run in `--out` from its latest checkpoint with the
-config it was started with (only `--episodes`, a new budget, may change).
+config it was started with (only `--episodes`, a new budget, may change, and where it runs: `--backend`,
+default local, `--workers`, `--staleness`; see `bitcomm.commands.backend_flags`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import argparse
 import os
 from pathlib import Path
 
+from bitcomm.commands.backend_flags import add_backend_flags, execution
 from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.flags import MAX_EVAL_EPISODES, MAX_JOBS, MAX_TRAIN_EPISODES, SEED, check_train, integer, out_dir
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
@@ -52,6 +54,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="final evaluation episodes, 0: none (default %(default)s)",
     )
     add_learning_flags(p)
+    add_backend_flags(p)
     add_task_flags(p)
     p.set_defaults(run=run)
 
@@ -86,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
             episodes=args.episodes,
             **learning_overrides(args),
         )
+    cfg = execution(args, cfg)
     check_train(cfg)
     threads = args.threads or default_threads()
     if threads is not None:
@@ -96,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         f"run folder: {out}{' (resumed)' if args.resume else ''}; torch threads: {threads or 'OMP_NUM_THREADS'}",
         flush=True,
     )
-    checkpoint = train(cfg, out, resume=args.resume, progress=not args.quiet)
+    checkpoint = train(cfg, out, resume=args.resume, progress=not args.quiet, address=args.address)
     print(f"checkpoint: {checkpoint}")
     if args.eval_episodes:
         from bitcomm.commands.common import print_result

@@ -20,6 +20,7 @@ from bitcomm.policies.heads import MESSAGE_HEADS
 from bitcomm.policies.networks import ModelConfig
 
 MODES = ("sync", "a3c")
+BACKENDS = ("local", "ray")
 
 
 @dataclass(frozen=True)
@@ -32,8 +33,15 @@ class TrainConfig:
     """`standard` (paper eq. 7) or `improved` (paper eq. 8)."""
     mode: str = "sync"
     """`sync`: batches of vectorized episodes; `a3c`: the paper's asynchronous workers."""
+    backend: str = "local"
+    """`local`: train in this process (`mode`); `ray`: rollout actors on a Ray cluster and one learner here
+    (bitcomm.learn.ray_backend, docs/distributed.md). How a run is executed, not what it learns: a run resumes
+    on either."""
     workers: int = 2
-    """Worker processes in `a3c` mode."""
+    """Worker processes in `a3c` mode, rollout actors on Ray."""
+    staleness: int = 0
+    """On Ray: 0 waits for every actor's batch and makes one update on them all (synchronous); S > 0 updates on
+    each batch as it arrives and drops one collected with weights more than S updates old (asynchronous)."""
     episodes: int = 100_000
     """Budget: environment episodes to play."""
     train_max_steps: int = 0
@@ -100,9 +108,16 @@ class TrainConfig:
             raise bad_value("messages", self.model.messages, f"choose one of {', '.join(MESSAGE_HEADS)}")
         if self.mode not in MODES:
             raise bad_value("mode", self.mode, f"choose one of {', '.join(MODES)}")
+        if self.backend not in BACKENDS:
+            raise bad_value("backend", self.backend, f"choose one of {', '.join(BACKENDS)}")
+        if self.backend == "ray" and self.mode != "sync":
+            raise bad_value("mode", self.mode, "on --backend ray leave it at sync (--staleness picks sync or async)")
         if self.recipe not in RECIPES:
             raise bad_value("recipe", self.recipe, f"choose one of {', '.join(RECIPES)}")
         check_int("train_max_steps", self.train_max_steps, 0)  # 0: the task's max_steps
+        check_int("staleness", self.staleness, 0)
+        if self.staleness and self.backend != "ray":
+            raise bad_value("staleness", self.staleness, "acts only on --backend ray; leave it at 0")
         for name in ("workers", "episodes", "num_envs", "epochs", "minibatches", "keep_checkpoints"):
             check_int(name, getattr(self, name), 1)
         if self.minibatches > self.num_envs:

@@ -1,5 +1,6 @@
 """A training run: `train` holds the run folder's lock (`bitcomm.learn.run_folder` describes the folder)
-and trains in `cfg.mode`: `sync` here, `a3c` in `bitcomm.learn.a3c`.
+and trains in `cfg.mode`: `sync` here, `a3c` in `bitcomm.learn.a3c`; or on Ray (`cfg.backend`,
+`bitcomm.learn.ray_backend`).
 
 `sync` mode: batch k plays `num_envs` whole episodes seeded by `SeedSequence(seed, spawn_key=(k,))`
 and makes one learner update; the weights are initialised under `torch.manual_seed(seed)` and all
@@ -40,8 +41,9 @@ from bitcomm.run_lock import run_lock
 
 
 # ---------------------------------------------------------------------------------------------- loop
-def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
-    """Train in `cfg.mode` until `cfg.episodes` episodes are played; returns the latest checkpoint."""
+def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True, address: str | None = None) -> Path:
+    """Train in `cfg.mode` (or on Ray, at the cluster `address`) until `cfg.episodes` episodes are played;
+    returns the latest checkpoint."""
     out = Path(out)
     if resume and not has_checkpoint(out):
         raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
@@ -50,6 +52,10 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = Tr
     except OSError as err:
         raise ConfigError(f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})") from None
     with run_lock(out):
+        if cfg.backend == "ray":
+            from bitcomm.learn.ray_backend import train_ray
+
+            return train_ray(cfg, out, resume=resume, progress=progress, address=address)
         if cfg.mode == "a3c":
             from bitcomm.learn.a3c import train_a3c
 

@@ -151,6 +151,16 @@ class Logger:
         if self.columns is None:
             self.columns = list(row)
             csv.DictWriter(self.file, self.columns).writeheader()
+        elif not row.keys() <= set(self.columns):  # a run resumed by another trainer logs more: widen the file
+            self.columns += [k for k in row if k not in self.columns]
+            self.file.close()
+            with self.path.open(newline="") as f:
+                rows = list(csv.DictReader(f))
+            with self.path.open("w", newline="") as f:
+                w = csv.DictWriter(f, self.columns)
+                w.writeheader()
+                w.writerows(rows)
+            self.file = self.path.open("a", newline="")
         csv.DictWriter(self.file, self.columns, extrasaction="ignore").writerow(row)
         self.file.flush()
         step = int(row["episodes"])

@@ -1,0 +1,339 @@
+"""Training on a Ray cluster (`backend="ray"`, docs/distributed.md): rollout actors collect, one learner here updates.
+
+    # actors    `workers` rollout actors, each with its own Collector (`num_envs` episodes a batch) and a CPU copy
+    #           of the policy
+    # publish   after each update the policy's weights go to the object store once (`ray.put`); every actor's
+    #           next batch is asked for with that reference, so a node fetches the weights once, not once per actor
+    # collect   batch k plays the episodes of `SeedSequence(seed, (k,))` (as sync mode does) and samples with a
+    #           generator seeded by (seed, k); it comes back as numpy arrays with the weights version it was played with
+    # learn     staleness 0: wait for the batches of all actors, join them (in batch order) and make one
+    #           `Learner.update`; staleness S > 0: update on each batch as it arrives (`ray.wait`), dropping (and
+    #           counting) a batch played with weights more than S updates old; metrics.csv records each
+    #           update's staleness
+    # faults    an actor that dies is replaced and the batch it was playing is asked of the new one; checkpoints
+    #           are the local trainers' (atomic, same state), so a run resumes on either backend
+
+Reproducible: with staleness 0 a run is bit for bit the same for a given seed, `workers` and `num_envs` (which
+batches an update joins and the weights each was played with are fixed), through actor deaths and resumes.
+Asynchronous runs are seeded (a batch's episodes and samples are fixed by its index) but which weights a batch
+meets depends on timing, so they are not. The row's `batch` counts batches consumed, so a local resume plays
+the next batch index; batches dropped for staleness or lost in flight were played but not counted.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bitcomm.errors import ConfigError, bad_value
+from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.rollout import Collector, Rollout
+from bitcomm.learn.run_folder import (
+    Logger,
+    Progress,
+    checkpoint_weights,
+    finite_or_stop,
+    oracle_level,
+    prepare,
+    read_config_json,
+    restore_learner,
+    save_run_checkpoint,
+    write_config,
+)
+from bitcomm.policies.networks import PolicyNet
+
+ACTOR_PREFIX = "bitcomm-rollout"
+"""Rollout actors are named `<prefix>-<run token>-<worker>.<generation>` (`ray.util.list_named_actors` lists them)."""
+MAX_FAILURES = 3
+"""An actor that dies this many times in a row before delivering a batch stops the run with the cause (a node
+that cannot start one: bitcomm or a dependency missing there) instead of being replaced forever."""
+SAMPLE_KEY = 1 << 31
+"""Batch k samples moves and bits with `SeedSequence(seed, (SAMPLE_KEY, k))`, apart from its episodes' seeds."""
+EPISODE_FIELDS = ("length", "team_return", "success", "goal")
+"""Rollout fields indexed by episode only; the others are time-major `(T, B, ...)`."""
+
+
+def sample_seed(seed: int, batch: int) -> int:
+    """The seed of batch `batch`'s sampling generator."""
+    return int(np.random.SeedSequence(seed, spawn_key=(SAMPLE_KEY, batch)).generate_state(1)[0])
+
+
+class RolloutWorker:
+    """Plays batches with its own envs and a CPU copy of the policy (run as a Ray actor)."""
+
+    def __init__(self, config: dict[str, Any]) -> None:
+        torch.set_num_threads(1)
+        self.cfg = TrainConfig.from_dict(config)
+        self.policy = PolicyNet(self.cfg.task, self.cfg.model)
+        self.collector = Collector(self.cfg.training_task, self.cfg.num_envs)
+        self.version = -1
+
+    def collect(self, weights: dict[str, np.ndarray], version: int, batch: int) -> dict[str, Any]:
+        """Batch `batch` played with weights `version`: its Rollout as numpy arrays plus the bookkeeping."""
+        if version != self.version:
+            self.policy.load_state_dict({k: torch.tensor(v) for k, v in weights.items()})
+            self.version = version
+        t0 = time.perf_counter()
+        generator = torch.Generator().manual_seed(sample_seed(self.cfg.seed, batch))
+        ro = self.collector.collect(self.policy, np.random.SeedSequence(self.cfg.seed, spawn_key=(batch,)), generator)
+        arrays = {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in ro._asdict().items()}
+        return {"batch": batch, "version": version, "collect_s": time.perf_counter() - t0, "rollout": arrays}
+
+
+def join(rollouts: list[dict[str, np.ndarray]]) -> Rollout:
+    """Rollouts side by side as one (episodes joined, time padded with invalid steps to the longest); fresh
+    writable arrays, whatever the object store handed back."""
+    T = max(r["valid"].shape[0] for r in rollouts)
+    fields: dict[str, Any] = {}
+    for name in Rollout._fields:
+        parts = [r[name] for r in rollouts]
+        if name in EPISODE_FIELDS:
+            fields[name] = np.concatenate(parts)
+            continue
+        out = np.zeros((T, sum(p.shape[1] for p in parts), *parts[0].shape[2:]), dtype=parts[0].dtype)
+        col = 0
+        for p in parts:
+            out[: p.shape[0], col : col + p.shape[1]] = p
+            col += p.shape[1]
+        fields[name] = out
+    numpy = ("length", "team_return", "success")
+    tensors: dict[str, Any] = {k: v if k in numpy else torch.from_numpy(v) for k, v in fields.items()}
+    return Rollout(**tensors)
+
+
+def connect(address: str | None, workers: int) -> bool:
+    """Join the cluster at `address`, shipping this bitcomm package to its workers (Ray's `py_modules`: the
+    nodes need its dependencies, not bitcomm); None: a Ray already started in this process, else a new local
+    instance with a CPU per actor. Returns whether this call started Ray; one line if no cluster answers or it
+    is too small."""
+    import ray
+
+    import bitcomm
+
+    started = False
+    if not ray.is_initialized():
+        try:
+            if address is None:
+                cpus = max(workers, os.cpu_count() or 1)
+                ray.init("local", num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False)
+            else:
+                code = {"py_modules": [str(Path(bitcomm.__file__).parent)]}
+                ray.init(address, runtime_env=code, log_to_driver=False, configure_logging=False)
+        except (ConnectionError, RuntimeError, ValueError) as err:
+            reason = f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
+            raise bad_value("address", address, f"no Ray cluster answers there ({reason})") from None
+        started = True
+    cpus = ray.cluster_resources().get("CPU", 0)
+    if cpus < workers:
+        if started:
+            ray.shutdown()
+        raise bad_value("workers", workers, f"at most the Ray cluster's CPUs ({cpus:g}): each rollout actor takes one")
+    return started
+
+
+def _cause(err: Exception) -> str:
+    """The last line of a Ray error (the exception that killed the actor), without colour codes."""
+    lines = [line.strip() for line in re.sub(r"\x1b\[[0-9;]*m", "", str(err)).splitlines() if line.strip()]
+    return lines[-1] if lines else type(err).__name__
+
+
+class Actors:
+    """The rollout actors and the batches they are playing; replaces an actor that dies."""
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        import ray
+
+        self.ray = ray
+        self.cls = ray.remote(num_cpus=1)(RolloutWorker)
+        self.config = cfg.to_dict()
+        self.token = uuid.uuid4().hex[:8]
+        self.generation = [0] * cfg.workers
+        self.actors = [self._start(w) for w in range(cfg.workers)]
+        self.inflight: dict[Any, tuple[int, int]] = {}  # object ref -> (worker, batch)
+        self.restarts = 0
+        self.failures = [0] * cfg.workers  # deaths in a row without a batch delivered
+
+    def _start(self, w: int) -> Any:
+        name = f"{ACTOR_PREFIX}-{self.token}-{w}.{self.generation[w]}"
+        return self.cls.options(name=name).remote(self.config)  # type: ignore[attr-defined]
+
+    def launch(self, w: int, batch: int, weights: Any, version: int) -> None:
+        self.inflight[self.actors[w].collect.remote(weights, version, batch)] = (w, batch)
+
+    def receive(self, weights: Any, version: int) -> tuple[int, dict[str, Any]] | None:
+        """The next batch to arrive, with its worker; None when that worker died (it is replaced and asked for
+        the same batch with the latest weights)."""
+        ready, _ = self.ray.wait(list(self.inflight), num_returns=1)
+        w, batch = self.inflight.pop(ready[0])
+        try:
+            result = self.ray.get(ready[0])
+        except self.ray.exceptions.RayActorError as err:
+            self.failures[w] += 1
+            if self.failures[w] >= MAX_FAILURES:
+                raise ConfigError(
+                    f"invalid backend='ray': rollout actor {w} died {MAX_FAILURES} times in a row before delivering "
+                    f"a batch (last: {_cause(err)})"
+                ) from None
+            self.restarts += 1
+            self.generation[w] += 1
+            self.actors[w] = self._start(w)
+            self.launch(w, batch, weights, version)
+            return None
+        self.failures[w] = 0
+        return w, result
+
+    def stop(self) -> None:
+        for actor in self.actors:
+            self.ray.kill(actor)
+
+
+def train_ray(
+    cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True, address: str | None = None
+) -> Path:
+    """Train on Ray until `cfg.episodes` episodes are consumed; the caller holds the run folder's lock
+    (`bitcomm.learn.run.train`). Returns the latest checkpoint."""
+    try:
+        import ray
+    except ImportError:
+        raise bad_value("backend", cfg.backend, "Ray is not installed (pip install 'bitcomm[ray]')") from None
+    if cfg.backend != "ray":
+        raise bad_value("backend", cfg.backend, "train_ray needs backend='ray'")
+    started = connect(address, cfg.workers)
+    try:
+        return _train(cfg, out, resume, progress)
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def _policy_weights(policy: torch.nn.Module) -> dict[str, np.ndarray]:
+    return {k: v.detach().numpy() for k, v in policy.state_dict().items()}
+
+
+def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
+    import ray
+    from tqdm import tqdm
+
+    from bitcomm.learn.learner import Learner
+
+    saved = prepare(cfg, out, resume)
+    torch.manual_seed(cfg.seed)
+    learner = Learner(cfg)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    prog = Progress()
+    next_batch = 0
+    if saved is not None:
+        restore_learner(learner, saved)
+        if "generator" in saved:  # an a3c checkpoint has none
+            generator.set_state(saved["generator"])
+        torch.set_rng_state(saved["torch_rng"])
+        prog.restore(saved)
+        next_batch = int(saved.get("next_batch", prog.batches))
+        extra = {"oracle_mean_episode_length": read_config_json(out).get("oracle_mean_episode_length")}
+    else:
+        extra = {"oracle_mean_episode_length": oracle_level(cfg)}
+    write_config(cfg, out, extra)
+    logger = Logger(out, prog.batches if saved is not None else None)
+    n, S, N = cfg.task.env.n_agents, cfg.staleness, cfg.workers
+    version, dropped = 0, 0
+    weights = ray.put(_policy_weights(learner.policy))
+
+    def save() -> Path:
+        state = {
+            **prog.state(),
+            "opt_policy": learner.opt_policy.state_dict(),
+            "opt_critic": learner.opt_critic.state_dict(),
+            "generator": generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "next_batch": next_batch,
+        }
+        return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state)
+
+    actors = Actors(cfg)
+    planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs
+    bar = tqdm(total=planned, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
+    t_start, wall0, last_save = time.perf_counter(), prog.wall_s, time.monotonic()
+
+    def consume(batches: list[dict[str, Any]], staleness: int) -> None:
+        nonlocal version, weights, last_save
+        ro = join([b["rollout"] for b in batches])
+        t0 = time.perf_counter()
+        stats = learner.update(ro, generator, progress=prog.episodes / cfg.episodes)
+        finite_or_stop(out, learner, prog.episodes + len(ro.length))
+        version += 1
+        weights = ray.put(_policy_weights(learner.policy))  # once per update, whatever the number of actors
+        update_s = time.perf_counter() - t0
+        prog.wall_s = wall0 + time.perf_counter() - t_start
+        prog.batches += len(batches)
+        prog.episodes += len(ro.length)
+        prog.agent_steps += int(ro.length.sum()) * n
+        prog.recent.extend(int(x) for x in ro.length)
+        prog.recent_return.extend(float(x) for x in ro.team_return)
+        row = {
+            "batch": prog.batches,
+            "episodes": prog.episodes,
+            "agent_steps": prog.agent_steps,
+            "wall_s": round(prog.wall_s, 3),
+            "charts/episode_length": float(ro.length.mean()),
+            "charts/episode_length_rolling": float(np.mean(prog.recent)),
+            "charts/team_return": float(ro.team_return.mean()),
+            "charts/success": float(ro.success.mean()),
+            **stats,
+            "ray/staleness": staleness,
+            "ray/dropped": dropped,
+            "ray/restarts": actors.restarts,
+            "ray/update_s": update_s,
+            "ray/collect_s": float(np.mean([b["collect_s"] for b in batches])),
+        }
+        logger.log(row)
+        bar.update(len(ro.length))
+        bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")
+        if time.monotonic() - last_save >= cfg.checkpoint_seconds and prog.episodes < cfg.episodes:
+            save()
+            last_save = time.monotonic()
+
+    def launch(w: int) -> None:
+        nonlocal next_batch
+        actors.launch(w, next_batch, weights, version)
+        next_batch += 1
+
+    def wanted() -> bool:
+        return prog.episodes + len(actors.inflight) * cfg.num_envs < cfg.episodes
+
+    try:
+        if S == 0:  # synchronous: every actor plays one batch with the same weights, one update on them all
+            while prog.episodes < cfg.episodes:
+                for w in range(min(N, math.ceil((cfg.episodes - prog.episodes) / cfg.num_envs))):
+                    launch(w)
+                got = []
+                while actors.inflight:
+                    if (arrived := actors.receive(weights, version)) is not None:
+                        got.append(arrived[1])
+                consume(sorted(got, key=lambda b: b["batch"]), 0)
+        else:  # asynchronous: update on each batch as it arrives, within the staleness bound
+            for w in range(N):
+                if wanted():
+                    launch(w)
+            while actors.inflight:
+                if (arrived := actors.receive(weights, version)) is None:
+                    continue
+                w, batch = arrived
+                if version - batch["version"] > S:
+                    dropped += 1
+                else:
+                    consume([batch], version - batch["version"])
+                if wanted():
+                    launch(w)
+        return save()
+    finally:
+        actors.stop()
+        bar.close()
+        logger.close()

@@ -1,0 +1,198 @@
+"""Training on Ray (issue 19) on a local two-CPU Ray instance and a tiny grid: synchronous runs are bit for bit
+the same through a killed actor and a killed driver; asynchronous runs keep their staleness bound, count
+the batches they drop and the actors they replace; runs move between Ray and the local trainer; bad flags
+get one line."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from bitcomm.cli import main
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+
+ray = pytest.importorskip("ray")
+
+TINY = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--quiet", "--eval-episodes", "0"]
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[str]:
+    """A local Ray instance for the module; yields its address."""
+    ray.init("local", num_cpus=2, include_dashboard=False, object_store_memory=80 * 2**20, log_to_driver=False)
+    yield ray.get_runtime_context().gcs_address
+    ray.shutdown()
+
+
+def tiny_config(**kw: Any) -> Any:
+    from bitcomm.learn.config import make_train_config
+
+    task = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
+    options = {"num_envs": 16, "episodes": 96, "checkpoint_seconds": 1e9, "backend": "ray", "workers": 2, **kw}
+    return make_train_config("reinforced", task, **options)
+
+
+def rows(run: Path) -> list[dict[str, str]]:
+    with (run / "metrics.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def learning(run: Path) -> list[dict[str, str]]:
+    """The rows without timings and fault counts: what a reproducible run repeats."""
+    return [{k: v for k, v in r.items() if k != "wall_s" and not k.startswith("ray/")} for r in rows(run)]
+
+
+def weights(run: Path) -> dict[str, torch.Tensor]:
+    from bitcomm.checkpoint import load_weights
+
+    w, _ = load_weights(run)
+    return {f"{p}.{k}": v for p, sd in w.items() for k, v in sd.items()}
+
+
+def same_weights(a: Path, b: Path) -> bool:
+    wa, wb = weights(a), weights(b)
+    return wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
+def kill_an_actor_after_a_row(run: Path) -> threading.Thread:
+    """Kill one rollout actor, as a user would from outside, once the run has logged an update."""
+    from bitcomm.learn.ray_backend import ACTOR_PREFIX
+
+    before = len(rows(run)) if (run / "metrics.csv").is_file() else 0
+
+    def kill() -> None:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not ((run / "metrics.csv").is_file() and len(rows(run)) > before):
+            time.sleep(0.01)
+        names = [a["name"] for a in ray.util.list_named_actors(all_namespaces=True)]
+        ray.kill(ray.get_actor(sorted(n for n in names if n.startswith(ACTOR_PREFIX))[0]))
+
+    thread = threading.Thread(target=kill)
+    thread.start()
+    return thread
+
+
+def test_sync_is_bit_for_bit_through_a_killed_actor_and_a_killed_driver(cluster: str, tmp_path: Path) -> None:
+    from bitcomm.learn.run import train
+
+    torch.set_num_threads(1)
+    killer = kill_an_actor_after_a_row(tmp_path / "actor")
+    train(tiny_config(), tmp_path / "actor", progress=False)
+    killer.join()
+    actor = rows(tmp_path / "actor")
+    assert [int(r["batch"]) for r in actor] == [2, 4, 6]  # two actors' batches per update
+    assert [int(r["episodes"]) for r in actor] == [32, 64, 96]
+    assert {r["ray/staleness"] for r in actor} == {"0"} and actor[-1]["ray/restarts"] == "1"
+
+    # the driver killed after its first checkpoint, the run resumed on the same cluster: the same run
+    out = tmp_path / "driver"
+    args = ["train", *TINY, "--episodes", "96", "--backend", "ray", "--workers", "2", "--checkpoint-seconds", "0"]
+    # os.environ as it is now: the cluster's authentication mode, set by ray.init, must reach the driver
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bitcomm.cli", *args, "--address", cluster, "--out", str(out)],
+        env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    latest = out / "checkpoints" / "latest.json"
+    deadline = time.monotonic() + 60
+    while not latest.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert int(rows(out)[-1]["episodes"]) < 96, "the run ended before it could be killed"
+    assert main([*args, "--out", str(out), "--resume"]) == 0
+    assert rows(out)[-1]["ray/restarts"] == "0"
+    assert learning(out) == learning(tmp_path / "actor")
+    assert same_weights(out, tmp_path / "actor")
+
+
+def test_async_keeps_its_staleness_bound_and_runs_move_between_local_and_ray(cluster: str, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert main(["train", *TINY, "--out", str(out), "--episodes", "32"]) == 0
+    # local -> Ray, asynchronous, an actor killed
+    killer = kill_an_actor_after_a_row(out)
+    resume = ["train", *TINY, "--out", str(out), "--resume", "--backend", "ray", "--workers", "2", "--staleness", "1"]
+    assert main([*resume, "--episodes", "192"]) == 0
+    killer.join()
+    r = rows(out)[2:]
+    assert [int(x["batch"]) for x in r] == list(range(3, 13))  # one batch per update
+    assert all(int(x["ray/staleness"]) <= 1 for x in r)
+    # the replaced actor's batch was asked for while the other actor went on: too old when it came, dropped
+    assert r[-1]["ray/restarts"] == "1" and int(r[-1]["ray/dropped"]) >= 1
+    # Ray -> local: --resume without --backend continues in this process
+    assert main(["train", *TINY, "--out", str(out), "--resume", "--episodes", "224"]) == 0
+    assert [int(x["episodes"]) for x in rows(out)][-3:] == [192, 208, 224]
+
+
+def test_joined_batches_keep_each_episode_and_pad_time_with_invalid_steps() -> None:
+    import numpy as np
+
+    from bitcomm.learn.ray_backend import RolloutWorker, join
+
+    worker = RolloutWorker(tiny_config(num_envs=4).to_dict())
+    weights = {k: v.numpy() for k, v in worker.policy.state_dict().items()}
+    # copies: a worker's arrays are its buffers, which its next batch overwrites (Ray copies them when they leave)
+    a, b = ({k: v.copy() for k, v in worker.collect(weights, 0, k)["rollout"].items()} for k in (0, 1))
+    ro = join([a, b])
+    Ta, Tb = a["valid"].shape[0], b["valid"].shape[0]
+    assert ro.valid.shape == (max(Ta, Tb), 8) and np.array_equal(ro.length, np.concatenate([a["length"], b["length"]]))
+    assert np.array_equal(ro.valid.sum(0).numpy(), ro.length)  # padding is invalid
+    assert np.array_equal(ro.moves[:Ta, :4].numpy(), a["moves"])
+    assert np.array_equal(ro.moves[:Tb, 4:].numpy(), b["moves"])
+    assert np.array_equal(worker.collect(weights, 0, 1)["rollout"]["moves"], b["moves"])  # batch 1 is batch 1
+
+
+def test_an_actor_that_cannot_start_stops_the_run_with_its_cause(cluster: str) -> None:
+    from bitcomm.errors import ConfigError
+    from bitcomm.learn.ray_backend import MAX_FAILURES, Actors
+
+    class Broken:  # a node without bitcomm's dependencies, say
+        def __init__(self, config: dict[str, Any]) -> None:
+            import no_such_module  # noqa: F401
+
+        def collect(self, *args: Any) -> None: ...
+
+    actors = Actors(tiny_config(workers=1))
+    ray.kill(actors.actors[0])
+    actors.cls = ray.remote(num_cpus=1)(Broken)
+    actors.launch(0, 0, None, 0)
+    for _ in range(MAX_FAILURES - 1):
+        assert actors.receive(None, 0) is None  # replaced, asked again
+    with pytest.raises(ConfigError, match="died 3 times in a row .*No module named 'no_such_module'"):
+        actors.receive(None, 0)
+    assert actors.restarts == MAX_FAILURES - 1
+
+
+@pytest.mark.parametrize(
+    ("argv", "flag"),
+    [
+        (["--backend", "nosuch"], "backend"),
+        (["--backend", "ray", "--workers", "0"], "workers"),
+        (["--backend", "ray", "--workers", "3"], "workers"),  # more actors than the cluster's two CPUs
+        (["--backend", "ray", "--staleness", "-1"], "staleness"),
+        (["--staleness", "2"], "staleness"),  # asynchrony is Ray's
+        (["--address", "127.0.0.1:6379"], "address"),  # an address without --backend ray
+        (["--backend", "ray", "--address", "nonsense"], "address"),
+        (["--backend", "ray", "--mode", "a3c"], "mode"),
+    ],
+)
+def test_bad_flags_get_one_line(
+    cluster: str, argv: list[str], flag: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    try:
+        code = main(["train", *TINY, "--episodes", "16", "--out", str(tmp_path / "run"), *argv])
+    except SystemExit as exit_:
+        code = exit_.code
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert flag in lines[0] and "invalid" in lines[0] and "Traceback" not in lines[0]
