@@ -44,6 +44,10 @@ BAD_TEXT: dict[str, list[str]] = {
     "--vary": ["nonsense", "lr=", "lr=inf", "lr=abc", "hidden=-8", "delay=300", "flip_prob=2"],
     "--param": ["nonsense", "delay=", "delay=300", "flip_prob=nan", "act_delay=abc", "delay=1.5"],
     "--onnx": ["no/such/file.onnx", FILE],
+    "--env": ["no_such_module_xyz:make", "json:nosuch", "json:JSONDecoder", "no-colon"],
+    "--env-kwargs": ["[1]", "{bad"],
+    "--topology": ["star", "[[1]]", "{"],
+    "--fixed-actions": ["[1]", "{bad"],
 }
 """Text flags with a syntax of their own (`--onnx` of deploy reads a file; export's writes one)."""
 
