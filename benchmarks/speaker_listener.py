@@ -1,0 +1,179 @@
+"""MPE2 `simple_speaker_listener_v4` with the speaker talking through bitcomm's channel (issue 18, item 4).
+
+The speaker sees the goal landmark's colour; the listener sees the landmarks and must reach the goal.
+Configurations, each trained on `--seeds` seeds with `bitcomm train --env` (pure reinforcement, SPEC 7):
+
+- `bitcomm`:  improved + bitwise, K bits through bitcomm's channel; the speaker's native communication action
+  fixed to 0 (`--fixed-actions '{"speaker_0": 0}'`), so bitcomm's channel is the only way to talk;
+- `dropped`:  the same with every message dropped (`--drop-prob 1`): the learned no-communication level;
+- `native`:   the env's own Discrete communication action live (the speaker's action head learns it) and
+  bitcomm's channel cut (`--drop-prob 1`): the same learner talking through MPE2's channel;
+- with `--techniques`: standard/improved x bitwise/onehot through bitcomm's channel (`bitcomm` is improved +
+  bitwise).
+
+Each run is measured on the same `--eval-episodes` episodes (seed `--eval-seed`, sampling); `bitcomm` runs
+are also measured with the channel cut at evaluation (`cut at eval`). The table gives the mean team return
+(the sum over the episode's 25 steps of the shared reward, minus the squared distance to the goal) over seeds
+with a 95% Student's t interval (`bitcomm.studies.stats`), and writes it into docs/env_learning.md between
+markers. Finished runs are skipped and unfinished ones resumed, so the script can be stopped and rerun.
+
+    python benchmarks/speaker_listener.py [--episodes 8960] [--seeds 3] [--jobs 1] [--threads 1] [--techniques]
+        [--out runs/speaker_listener] [--bits 3] [--eval-episodes 1000] [--only NAME,...] [--no-docs]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = "mpe2.simple_speaker_listener_v4:parallel_env"
+FIXED = ["--fixed-actions", '{"speaker_0": 0}']
+CUT = ["--drop-prob", "1"]
+CONFIGS: dict[str, list[str]] = {
+    "bitcomm": [*FIXED, "--estimator", "improved", "--messages", "bitwise"],
+    "dropped": [*FIXED, *CUT, "--estimator", "improved", "--messages", "bitwise"],
+    "native": [*CUT, "--estimator", "improved", "--messages", "bitwise"],
+}
+TECHNIQUES: dict[str, list[str]] = {
+    f"{est}-{msg}": [*FIXED, "--estimator", est, "--messages", msg]
+    for est in ("standard", "improved")
+    for msg in ("bitwise", "onehot")
+    if (est, msg) != ("improved", "bitwise")
+}
+LABELS = {
+    "bitcomm": "improved + bitwise through bitcomm's channel (speaker's native action fixed)",
+    "dropped": "the same, every message dropped (trained with --drop-prob 1)",
+    "native": "the env's native Discrete communication, bitcomm's channel cut",
+    "standard-bitwise": "standard + bitwise through bitcomm's channel",
+    "standard-onehot": "standard + one-hot through bitcomm's channel",
+    "improved-onehot": "improved + one-hot through bitcomm's channel",
+}
+BEGIN, END = "<!-- speaker_listener:begin -->", "<!-- speaker_listener:end -->"
+
+
+def finished_episodes(run: Path) -> int:
+    latest = run / "checkpoints" / "latest.json"
+    return int(json.loads(latest.read_text())["episodes"]) if latest.is_file() else 0
+
+
+def train_one(name: str, seed: int, args: argparse.Namespace) -> Path:
+    """Train (or resume, or skip) one run; returns its folder."""
+    run = args.out / f"{name}-s{seed}"
+    done = finished_episodes(run)
+    if done >= args.episodes:
+        return run
+    argv = [sys.executable, "-m", "bitcomm.cli", "train", "--out", str(run), "--episodes", str(args.episodes)]
+    argv += ["--threads", str(args.threads), "--quiet", "--eval-episodes", "0"]
+    if done > 0:
+        argv += ["--resume"]
+    else:
+        argv += ["--env", ENV, "--bits", str(args.bits), "--seed", str(seed), "--num-envs", str(args.num_envs)]
+        argv += (CONFIGS | TECHNIQUES)[name]
+    t0 = time.time()
+    env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
+    out = subprocess.run(argv, capture_output=True, text=True, env=env)
+    if out.returncode != 0:
+        raise SystemExit(f"{name} seed {seed} failed: {out.stderr.strip()}")
+    print(f"trained {run.name} in {time.time() - t0:.0f} s", flush=True)
+    return run
+
+
+def evaluate_one(run: Path, args: argparse.Namespace, cut: bool) -> float:
+    """Mean team return of a run on the evaluation episodes (cached in the run folder)."""
+    import torch
+
+    from bitcomm.learn.env_eval import evaluate_env
+
+    torch.set_num_threads(args.threads)
+    cache = run / f"eval{'-cut' if cut else ''}-{args.eval_seed}-{args.eval_episodes}.json"
+    if cache.is_file() and json.loads(cache.read_text())["episodes_trained"] == finished_episodes(run):
+        return float(json.loads(cache.read_text())["mean_team_return"])
+    result = evaluate_env(run, args.eval_episodes, args.eval_seed, drop_prob=1.0 if cut else None)
+    cache.write_text(json.dumps({**result.to_dict(), "episodes_trained": finished_episodes(run)}) + "\n")
+    return result.mean_team_return
+
+
+def wall_seconds(run: Path) -> float:
+    import csv
+
+    with (run / "metrics.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return float(rows[-1]["wall_s"]) if rows else float("nan")
+
+
+def table(results: dict[str, list[tuple[int, float, float | None, float]]], args: argparse.Namespace) -> str:
+    from bitcomm.studies.stats import mean_interval
+
+    lines = [
+        f"MPE2 `simple_speaker_listener_v4`, K = {args.bits} bits, delay 1, {args.episodes} training episodes per run "
+        f"({args.num_envs} per batch), evaluation on {args.eval_episodes} episodes (seed {args.eval_seed}, sampling). "
+        "Mean team return (higher is better) over seeds, 95% Student's t interval.",
+        "",
+        "| configuration | seeds | mean team return | 95% interval | cut at eval | training s (mean) |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for name, rows in results.items():
+        if not rows:
+            continue
+        ret = np.array([r[1] for r in rows])
+        mean, lo, hi = mean_interval(ret)
+        cuts = [r[2] for r in rows if r[2] is not None]
+        cut = f"{np.mean(cuts):.2f}" if cuts else ""
+        seeds = ",".join(str(r[0]) for r in rows)
+        wall = np.mean([r[3] for r in rows])
+        lines.append(f"| {LABELS[name]} | {seeds} | {mean:.2f} | {lo:.2f} to {hi:.2f} | {cut} | {wall:.0f} |")
+    return "\n".join(lines)
+
+
+def write_docs(text: str, command: str) -> None:
+    doc = ROOT / "docs" / "env_learning.md"
+    body = doc.read_text()
+    if BEGIN not in body or END not in body:
+        raise SystemExit(f"{doc} lacks the markers {BEGIN} / {END}")
+    head, rest = body.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    doc.write_text(f"{head}{BEGIN}\n{text}\n\nProduced by `{command}`.\n{END}{tail}")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--episodes", type=int, default=8960, help="training episodes per run (about 3 min at 1 thread)")
+    p.add_argument("--num-envs", type=int, default=64, help="episodes per batch")
+    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--bits", type=int, default=3)
+    p.add_argument("--jobs", type=int, default=1, help="runs at once")
+    p.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    p.add_argument("--techniques", action="store_true", help="also the other three of the four techniques")
+    p.add_argument("--only", default="", help="comma-separated configuration names (default: all)")
+    p.add_argument("--eval-episodes", type=int, default=1000)
+    p.add_argument("--eval-seed", type=int, default=1000)
+    p.add_argument("--out", type=Path, default=Path("runs/speaker_listener"))
+    p.add_argument("--no-docs", action="store_true", help="print the table only")
+    args = p.parse_args()
+    names = list(CONFIGS) + (list(TECHNIQUES) if args.techniques else [])
+    if args.only:
+        names = [n for n in args.only.split(",") if n in names]
+    jobs = [(name, seed) for seed in range(args.seeds) for name in names]
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        runs = list(pool.map(lambda job: train_one(*job, args), jobs))
+    results: dict[str, list[tuple[int, float, float | None, float]]] = {name: [] for name in names}
+    for (name, seed), run in zip(jobs, runs, strict=True):
+        cut = evaluate_one(run, args, cut=True) if name == "bitcomm" else None
+        results[name].append((seed, evaluate_one(run, args, cut=False), cut, wall_seconds(run)))
+    text = table(results, args)
+    print(text)
+    if not args.no_docs:
+        write_docs(text, "python " + " ".join(["benchmarks/speaker_listener.py", *sys.argv[1:]]))
+
+
+if __name__ == "__main__":
+    main()
