@@ -31,16 +31,20 @@ SPEC = f"{__name__}:SignalEnv"
 class SignalEnv(ParallelEnv):
     """Speaker (obs: the bit; 1 action) and listener (obs: 3 numbers, no bit; 2 actions). From step 1 on, the
     listener earns 1 when its action equals the bit. `steps` steps; with `speaker_leaves` the speaker
-    terminates after step 0. No `state()`: the critic reads the concatenated observations."""
+    terminates after step 0; with `box`, Box actions (speaker 1 number, listener 2; the listener's action is
+    1 when its first number is positive). No `state()`: the critic reads the concatenated observations."""
 
     metadata = {"name": "signal_v0"}
 
-    def __init__(self, steps: int = 2, speaker_leaves: bool = False) -> None:
+    def __init__(self, steps: int = 2, speaker_leaves: bool = False, box: bool = False) -> None:
         self.possible_agents = ["speaker", "listener"]
         self.agents: list[str] = []
         self.steps, self.speaker_leaves = steps, speaker_leaves
         self._obs = {"speaker": spaces.Box(0, 1, (1,), np.float32), "listener": spaces.Box(0, 1, (3,), np.float32)}
-        self._act = {"speaker": spaces.Discrete(1), "listener": spaces.Discrete(2)}
+        self._act: dict[str, spaces.Space] = {"speaker": spaces.Discrete(1), "listener": spaces.Discrete(2)}
+        if box:
+            self._act = {a: spaces.Box(-1, 1, (k,), np.float32) for a, k in (("speaker", 1), ("listener", 2))}
+        self.box = box
 
     def observation_space(self, agent: str) -> spaces.Space:
         return self._obs[agent]
@@ -60,7 +64,10 @@ class SignalEnv(ParallelEnv):
         return self._observe(), {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
-        r = float(self.t >= 1 and int(actions["listener"]) == self.bit)
+        act = actions["listener"]
+        if self.box:
+            assert np.all(np.abs(act) <= 1), act  # clipped to the bounds before it reaches the env
+        r = float(self.t >= 1 and int(act[0] > 0 if self.box else act) == self.bit)
         self.t += 1
         acting = list(self.agents)
         trunc = {a: self.t >= self.steps for a in acting}
@@ -96,6 +103,20 @@ def test_vector_env_and_rollout_shapes() -> None:
     assert torch.equal(ro.state[0], ro.obs[0].flatten(1))  # no state(): the padded observations
     assert (ro.actions[:, :, 0] == 0).all()  # the speaker has one action: the rest are masked
     np.testing.assert_array_equal(ro.length, [3] * B)
+
+
+def test_box_actions_are_gaussian_and_padded() -> None:
+    cfg = config(env_kwargs={"box": True})
+    vec = VecEnv(env_factory(cfg), 4)
+    assert not vec.layout.discrete and vec.layout.action_sizes == (1, 2)
+    torch.manual_seed(0)
+    learner = EnvLearner(cfg, vec.layout)
+    ro = play(vec, learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    assert ro.actions.shape == (2, 4, 2, 2) and (ro.actions[:, :, 0, 1] == 0).all()  # the speaker's padding
+    dist = learner.policy.actions
+    out, _ = learner.policy(ro.obs[0], ro.received[0])
+    torch.testing.assert_close(dist.log_prob(out, ro.actions[0]), ro.logp_action[0])
+    assert torch.isfinite(torch.tensor(list(learner.update(ro).values()))).all()
 
 
 def test_rollouts_are_seeded() -> None:
@@ -184,10 +205,10 @@ def _grads(learner: EnvLearner, ro: EnvRollout, adv: Advantages) -> dict[str, to
     }
 
 
-@pytest.mark.parametrize("clip", [0.0, 0.2])
-def test_pure_zero_advantages_and_entropy_give_zero_gradient(clip: float) -> None:
+@pytest.mark.parametrize(("clip", "box"), [(0.0, False), (0.2, False), (0.2, True)])
+def test_pure_zero_advantages_and_entropy_give_zero_gradient(clip: float, box: bool) -> None:
     """SPEC 7: every gradient that reaches the action and message heads is policy gradient + entropy."""
-    learner, ro = _batch(config(entropy_action=0.0, entropy_message=0.0, clip=clip))
+    learner, ro = _batch(config(entropy_action=0.0, entropy_message=0.0, clip=clip, env_kwargs={"box": box}))
     zero = Advantages(torch.zeros_like(ro.logp_action), torch.zeros_like(ro.logp_action), torch.zeros_like(ro.rewards))
     assert all((g == 0).all() for g in _grads(learner, ro, zero).values())
     grads = _grads(learner, ro, learner.advantages(ro))  # the check can fail: real advantages move both heads

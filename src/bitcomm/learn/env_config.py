@@ -31,6 +31,17 @@ class EnvChannelConfig:
     fixed_actions: dict[str, Any] | None = None
     """Agents whose inner action the wrapper fixes (e.g. `{"speaker_0": 0}` silences MPE2's native speaker)."""
 
+    def __post_init__(self) -> None:
+        """Only what JSON cannot carry is checked here; `BitChannel` checks the values (names, K, delay, p)."""
+        edges = self.topology
+        if not isinstance(edges, str) and not (
+            isinstance(edges, (list, tuple))
+            and all(isinstance(e, (list, tuple)) and len(e) == 2 and all(isinstance(a, str) for a in e) for e in edges)
+        ):
+            raise bad_value("topology", edges, "all, ring, or a list of [sender, receiver] agent-name pairs")
+        if self.fixed_actions is not None and not isinstance(self.fixed_actions, dict):
+            raise bad_value("fixed_actions", self.fixed_actions, "a JSON object: agent name -> its fixed action")
+
 
 @dataclass(frozen=True)
 class EnvTrainConfig:

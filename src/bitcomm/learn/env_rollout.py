@@ -45,7 +45,7 @@ def env_factory(cfg: EnvTrainConfig, drop_prob: float | None = None) -> Callable
     from bitcomm.envs.channel_wrapper import BitChannel
 
     ch = cfg.channel if drop_prob is None else dataclasses.replace(cfg.channel, drop_prob=drop_prob)
-    topology = ch.topology if isinstance(ch.topology, str) else [tuple(edge) for edge in ch.topology]
+    topology = ch.topology if isinstance(ch.topology, str) else [(str(s), str(r)) for s, r in ch.topology]
 
     def make() -> object:
         return BitChannel(
