@@ -11,10 +11,13 @@ Configurations, each trained on `--seeds` seeds with `bitcomm train --env` (pure
 - with `--techniques`: standard/improved x bitwise/onehot through bitcomm's channel (`bitcomm` is improved +
   bitwise).
 
+Only the speaker talks through bitcomm's channel (topology speaker_0 -> listener_0), as in the env itself.
+
 Each run is measured on the same `--eval-episodes` episodes (seed `--eval-seed`, sampling); `bitcomm` runs
 are also measured with the channel cut at evaluation (`cut at eval`). The table gives the mean team return
 (the sum over the episode's 25 steps of the shared reward, minus the squared distance to the goal) over seeds
-with a 95% Student's t interval (`bitcomm.studies.stats`), and writes it into docs/env_learning.md between
+with a 95% Student's t interval (`bitcomm.studies.stats`) and the information the speaker's messages carry
+about the goal colour (estimated from counts over 256 episodes), and writes it into docs/env_learning.md between
 markers. Finished runs are skipped and unfinished ones resumed, so the script can be stopped and rerun.
 
     python benchmarks/speaker_listener.py [--episodes 7040] [--seeds 3] [--jobs 1] [--threads 1] [--techniques]
@@ -37,6 +40,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 ENV = "mpe2.simple_speaker_listener_v4:parallel_env"
 FIXED = ["--fixed-actions", '{"speaker_0": 0}']
+TOPOLOGY = ["--topology", '[["speaker_0", "listener_0"]]']
+"""Only the speaker talks, as in the env itself: a listener's messages would only be noise in the speaker's input."""
 CUT = ["--drop-prob", "1"]
 LEARNING = ["--max-grad-norm", "10", "--critic-lr", "3e-3", "--entropy-message", "0.003"]
 """Tuned on seed 0 with runs of 3,200-5,760 episodes (docs/env_learning.md): the critic's squared errors start in
@@ -81,7 +86,7 @@ def train_one(name: str, seed: int, args: argparse.Namespace) -> Path:
         argv += ["--resume"]
     else:
         argv += ["--env", ENV, "--bits", str(args.bits), "--seed", str(seed), "--num-envs", str(args.num_envs)]
-        argv += [*(CONFIGS | TECHNIQUES)[name], *LEARNING]
+        argv += [*(CONFIGS | TECHNIQUES)[name], *TOPOLOGY, *LEARNING]
     t0 = time.time()
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
     out = subprocess.run(argv, capture_output=True, text=True, env=env)
@@ -106,6 +111,31 @@ def evaluate_one(run: Path, args: argparse.Namespace, cut: bool) -> float:
     return result.mean_team_return
 
 
+def message_information(run: Path, native: bool, args: argparse.Namespace) -> float:
+    """I(goal colour; what the speaker sends), in bits, estimated by counts over 256 seeded episodes: its bitcomm
+    message, or (`native`) its own communication action. The goal is the speaker's observation (one colour)."""
+    import torch
+
+    from bitcomm.channel.core import bits_to_index
+    from bitcomm.learn.env_eval import load_env_policy
+    from bitcomm.learn.env_rollout import make_vec, play
+
+    cache = run / f"information-{args.eval_seed}.json"
+    if cache.is_file() and json.loads(cache.read_text())["episodes_trained"] == finished_episodes(run):
+        return float(json.loads(cache.read_text())["bits"])
+    cfg, policy = load_env_policy(run)
+    ro = play(make_vec(cfg, 256), policy, np.random.SeedSequence(args.eval_seed), torch.Generator().manual_seed(0))
+    goal = ro.obs[:, :, 0, :3].argmax(-1).flatten().numpy()
+    said = (ro.actions[:, :, 0] if native else bits_to_index(ro.bits[:, :, 0])).flatten().numpy()
+    joint = np.zeros((3, int(said.max()) + 1))
+    np.add.at(joint, (goal, said), 1)
+    p = joint / joint.sum()
+    outer = p.sum(1, keepdims=True) * p.sum(0, keepdims=True)
+    bits = float(np.sum(p[p > 0] * np.log2(p[p > 0] / outer[p > 0])))
+    cache.write_text(json.dumps({"bits": bits, "episodes_trained": finished_episodes(run)}) + "\n")
+    return bits
+
+
 def wall_seconds(run: Path) -> float:
     import csv
 
@@ -114,28 +144,31 @@ def wall_seconds(run: Path) -> float:
     return float(rows[-1]["wall_s"]) if rows else float("nan")
 
 
-def table(results: dict[str, list[tuple[int, float, float | None, float]]], args: argparse.Namespace) -> str:
+def table(results: dict[str, list[dict[str, float]]], args: argparse.Namespace) -> str:
     from bitcomm.studies.stats import mean_interval
 
     lines = [
         f"MPE2 `simple_speaker_listener_v4`, K = {args.bits} bits, delay 1, {args.episodes} training episodes per run "
         f"({args.num_envs} per batch; `{' '.join(LEARNING)}`), evaluation on {args.eval_episodes} episodes "
         f"(seed {args.eval_seed}, sampling). "
-        "Mean team return (higher is better) over seeds, 95% Student's t interval.",
+        "Mean team return (higher is better) over seeds, 95% Student's t interval; `cut at eval`: the same "
+        "policies with every message dropped at evaluation; `I(goal; message)`: bits the speaker's messages (or, "
+        "native, its communication action) carry about the goal colour (at most log2 3 = 1.58).",
         "",
-        "| configuration | seeds | mean team return | 95% interval | cut at eval | training s (mean) |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| configuration | seeds | mean team return | 95% interval | cut at eval | I(goal; message) | training s |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, rows in results.items():
         if not rows:
             continue
-        ret = np.array([r[1] for r in rows])
-        mean, lo, hi = mean_interval(ret)
-        cuts = [r[2] for r in rows if r[2] is not None]
+        mean, lo, hi = mean_interval([r["return"] for r in rows])
+        cuts = [r["cut"] for r in rows if "cut" in r]
         cut = f"{np.mean(cuts):.2f}" if cuts else ""
-        seeds = ",".join(str(r[0]) for r in rows)
-        wall = np.mean([r[3] for r in rows])
-        lines.append(f"| {LABELS[name]} | {seeds} | {mean:.2f} | {lo:.2f} to {hi:.2f} | {cut} | {wall:.0f} |")
+        seeds = ",".join(str(int(r["seed"])) for r in rows)
+        info, wall = np.mean([r["information"] for r in rows]), np.mean([r["wall_s"] for r in rows])
+        lines.append(
+            f"| {LABELS[name]} | {seeds} | {mean:.2f} | {lo:.2f} to {hi:.2f} | {cut} | {info:.2f} | {wall:.0f} |"
+        )
     return "\n".join(lines)
 
 
@@ -170,10 +203,13 @@ def main() -> None:
     jobs = [(name, seed) for seed in range(args.seeds) for name in names]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         runs = list(pool.map(lambda job: train_one(*job, args), jobs))
-    results: dict[str, list[tuple[int, float, float | None, float]]] = {name: [] for name in names}
+    results: dict[str, list[dict[str, float]]] = {name: [] for name in names}
     for (name, seed), run in zip(jobs, runs, strict=True):
-        cut = evaluate_one(run, args, cut=True) if name == "bitcomm" else None
-        results[name].append((seed, evaluate_one(run, args, cut=False), cut, wall_seconds(run)))
+        row = {"seed": seed, "return": evaluate_one(run, args, cut=False), "wall_s": wall_seconds(run)}
+        row["information"] = message_information(run, name == "native", args)
+        if name == "bitcomm":
+            row["cut"] = evaluate_one(run, args, cut=True)
+        results[name].append(row)
     text = table(results, args)
     print(text)
     if not args.no_docs:
