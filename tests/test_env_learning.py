@@ -278,7 +278,11 @@ def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: p
     assert main([*argv, "--out", out, "--quiet", "--eval-episodes", "0", "--threads", "1"]) == 0
     assert main(["eval", out, "--episodes", "20", "--drop-prob", "1", "--json"]) == 0
     assert '"mean_team_return"' in capsys.readouterr().out
-    assert main(["eval", out, "--size", "5"]) == 2
+    assert main(["eval", out, "--size", "5"]) == 2  # a grid flag on a wrapped-env run
+    assert main(["train", "--resume", "--out", out, "--episodes", "16", "--quiet", "--eval-episodes", "0"]) == 0
+    checkpoint = str(Path(out) / "checkpoints" / "ckpt_000000016.safetensors")
+    assert main(["eval", checkpoint, "--episodes", "10"]) == 0
+    assert "10 episodes, mean team return" in capsys.readouterr().out
 
 
 # ---------------------------------------------------------------------------------------------- learning
