@@ -66,6 +66,7 @@ LABELS = {
     "standard-onehot": "standard + one-hot through bitcomm's channel",
     "improved-onehot": "improved + one-hot through bitcomm's channel",
 }
+MAX_SEEDS = 100
 BEGIN, END = "<!-- speaker_listener:begin -->", "<!-- speaker_listener:end -->"
 
 
@@ -202,14 +203,19 @@ def main() -> None:
         names = [n for n in args.only.split(",") if n in names]
     jobs = [(name, seed) for seed in range(args.seeds) for name in names]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        runs = list(pool.map(lambda job: train_one(*job, args), jobs))
-    results: dict[str, list[dict[str, float]]] = {name: [] for name in names}
-    for (name, seed), run in zip(jobs, runs, strict=True):
-        row = {"seed": seed, "return": evaluate_one(run, args, cut=False), "wall_s": wall_seconds(run)}
-        row["information"] = message_information(run, name == "native", args)
-        if name == "bitcomm":
-            row["cut"] = evaluate_one(run, args, cut=True)
-        results[name].append(row)
+        list(pool.map(lambda job: train_one(*job, args), jobs))
+    # the table holds every finished run in --out, so runs of an earlier call (other --only) stay in it
+    results: dict[str, list[dict[str, float]]] = {name: [] for name in [*CONFIGS, *TECHNIQUES]}
+    for name in results:
+        for seed in range(MAX_SEEDS):
+            run = args.out / f"{name}-s{seed}"
+            if finished_episodes(run) < args.episodes:
+                continue
+            row = {"seed": seed, "return": evaluate_one(run, args, cut=False), "wall_s": wall_seconds(run)}
+            row["information"] = message_information(run, name == "native", args)
+            if name == "bitcomm":
+                row["cut"] = evaluate_one(run, args, cut=True)
+            results[name].append(row)
     text = table(results, args)
     print(text)
     if not args.no_docs:
