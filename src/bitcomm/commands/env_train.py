@@ -53,6 +53,8 @@ def train(args: argparse.Namespace, threads: int | None) -> int:
     from bitcomm.learn.env_eval import evaluate_env
     from bitcomm.learn.env_run import resume_env_config, train_env
 
+    if getattr(args, "address", None) is not None:  # the Ray backend trains the grid only
+        raise bad_value("address", args.address, "not used with --env")
     if args.resume:
         if args.out is None:
             raise bad_value("resume", True, "give the run folder with --out")
