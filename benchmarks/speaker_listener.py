@@ -43,10 +43,11 @@ FIXED = ["--fixed-actions", '{"speaker_0": 0}']
 TOPOLOGY = ["--topology", '[["speaker_0", "listener_0"]]']
 """Only the speaker talks, as in the env itself: a listener's messages would only be noise in the speaker's input."""
 CUT = ["--drop-prob", "1"]
-LEARNING = ["--max-grad-norm", "10", "--critic-lr", "3e-3", "--entropy-message", "0.003"]
+LEARNING = ["--max-grad-norm", "10", "--critic-lr", "3e-3", "--entropy-message", "0.003", "--obs-norm"]
 """Tuned on seed 0 with runs of 3,200-5,760 episodes (docs/env_learning.md): the critic's squared errors start in
 the hundreds, and with the default clip at norm 1 and rate 1e-3 it learned slowly; this reached -16.7 on 500
-evaluation episodes where the defaults and four other variants reached -17.2 to -22.8."""
+evaluation episodes where the defaults and four other variants reached -17.2 to -22.8. With `--obs-norm` the
+speaker's messages carried 0.75 bits about the goal after 5,120 episodes, against 0.02-0.04 without."""
 CONFIGS: dict[str, list[str]] = {
     "bitcomm": [*FIXED, "--estimator", "improved", "--messages", "bitwise"],
     "dropped": [*FIXED, *CUT, "--estimator", "improved", "--messages", "bitwise"],

@@ -296,3 +296,18 @@ def test_improved_bitwise_learns_to_use_the_channel(tmp_path: Path) -> None:
         path = train_env(cfg, tmp_path / f"drop{drop}", progress=False)
         result[drop] = evaluate_env(path, 512, seed=7).mean_team_return
     assert result[0.0] > 0.9 and result[1.0] < 0.7, result
+
+
+def test_running_norm_matches_the_pooled_statistics() -> None:
+    from bitcomm.policies.mlp import RunningNorm
+
+    norm = RunningNorm((2, 3), enabled=True)
+    x = torch.randn(5, 4, 2, 3, generator=torch.Generator().manual_seed(0)) * 3 + 1
+    mask = torch.rand(5, 4, 2, generator=torch.Generator().manual_seed(1)) < 0.7
+    norm.update(x[:2], mask[:2])
+    norm.update(x[2:], mask[2:])
+    for i in range(2):  # each agent's statistics over the samples where it was present
+        kept = x[..., i, :][mask[..., i]]
+        torch.testing.assert_close(norm.mean[i], kept.mean(0))
+        torch.testing.assert_close(norm.var[i], kept.var(0, unbiased=False))
+    assert torch.equal(RunningNorm((3,), enabled=False)(x[0, 0, 0]), x[0, 0, 0])

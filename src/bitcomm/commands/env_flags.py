@@ -80,7 +80,13 @@ def add_env_flags(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="agents whose own action is fixed, a JSON object, e.g. '{\"speaker_0\": 0}' (default: none)",
     )
+    g.add_argument(
+        "--obs-norm",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="standardise observations and state by running statistics (default: off)",
+    )
 
 
-ENV_ONLY = ("env_kwargs", "topology", "fixed_actions")
+ENV_ONLY = ("env_kwargs", "topology", "fixed_actions", "obs_norm")
 """Flags that mean something only with --env."""

@@ -64,7 +64,9 @@ def train(args: argparse.Namespace, threads: int | None) -> int:
             bits=args.bits, delay=args.delay, flip_prob=args.flip_prob, drop_prob=args.drop_prob,
             topology=args.topology if args.topology is not None else "all", fixed_actions=args.fixed_actions,
         )  # fmt: skip
-        extra = {"episodes": args.episodes} if args.episodes is not None else {}
+        extra: dict[str, Any] = {"episodes": args.episodes} if args.episodes is not None else {}
+        if args.obs_norm is not None:
+            extra["obs_norm"] = args.obs_norm
         cfg = EnvTrainConfig(
             env=args.env, env_kwargs=args.env_kwargs or {}, channel=channel, estimator=args.estimator,
             messages=args.messages, seed=args.seed, **extra, **env_overrides(args),

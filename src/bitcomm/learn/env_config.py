@@ -70,6 +70,9 @@ class EnvTrainConfig:
     max_grad_norm: float = 1.0
     hidden: tuple[int, ...] = (128, 128)
     """Widths of the policy's trunk and of the critic's body."""
+    obs_norm: bool = False
+    """Standardise the policy's observations and the critic's state by running statistics
+    (`bitcomm.policies.mlp.RunningNorm`), updated after each learning update."""
     checkpoint_seconds: float = 60.0
     keep_checkpoints: int = 3
 

@@ -49,7 +49,7 @@ def load_env_policy(path: Path | str) -> tuple[EnvTrainConfig, MlpPolicy]:
     weights, info = load_weights(path)
     cfg = EnvTrainConfig.from_dict(info["config"])
     vec = make_vec(cfg, 1)
-    policy = MlpPolicy(vec.layout, cfg.messages, cfg.hidden)
+    policy = MlpPolicy(vec.layout, cfg.messages, cfg.hidden, cfg.obs_norm)
     policy.load_state_dict(weights["policy"])
     return cfg, policy.eval()
 

@@ -36,8 +36,8 @@ class EnvLearner:
 
     def __init__(self, cfg: EnvTrainConfig, layout: EnvLayout) -> None:
         self.cfg, self.layout, self.n = cfg, layout, layout.n
-        self.policy = MlpPolicy(layout, cfg.messages, cfg.hidden)
-        self.critic = MlpCritic(layout, cfg.messages, cfg.hidden, with_message=cfg.estimator == "standard")
+        self.policy = MlpPolicy(layout, cfg.messages, cfg.hidden, cfg.obs_norm)
+        self.critic = MlpCritic(layout, cfg.messages, cfg.hidden, cfg.estimator == "standard", cfg.obs_norm)
         self.opt_policy = torch.optim.Adam(self.policy.parameters(), lr=cfg.lr)
         self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
         self.estimator = get_estimator(cfg.estimator)

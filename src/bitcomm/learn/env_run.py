@@ -90,6 +90,8 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
             ro = play(vec, learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,)), generator)
             # update
             stats = learner.update(ro, generator)
+            learner.policy.obs_norm.update(ro.obs, ro.alive)  # after the update: one batch, one set of statistics
+            learner.critic.state_norm.update(ro.state, ro.valid)
             refuse_nonfinite(out, prog.episodes + len(ro.length), **weights())
             prog.wall_s += time.perf_counter() - t0
             prog.batches += 1

@@ -82,12 +82,54 @@ class GaussianActions:
 ActionDistribution = CategoricalActions | GaussianActions
 
 
+class RunningNorm(nn.Module):
+    """Inputs standardised by a running mean and variance per feature (`shape`), clipped to +-10, as PPO
+    implementations do for vector observations. The statistics are buffers (saved with the weights); they
+    change only through `update`, which the trainer calls after each learning update, so one batch is acted
+    on and learned from under the same statistics. Off (`enabled=False`): the identity."""
+
+    mean: torch.Tensor  # buffers, declared so that type checkers see tensors
+    var: torch.Tensor
+    count: torch.Tensor
+
+    def __init__(self, shape: tuple[int, ...], enabled: bool) -> None:
+        super().__init__()
+        self.enabled = enabled
+        self.register_buffer("mean", torch.zeros(shape))
+        self.register_buffer("var", torch.ones(shape))
+        self.register_buffer("count", torch.zeros(shape))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.enabled:
+            return x
+        return ((x - self.mean) / torch.sqrt(self.var + 1e-8)).clamp(-10.0, 10.0)
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor, mask: torch.Tensor) -> None:
+        """Fold in the samples `x (..., *shape)` where `mask` (over `x`'s leading dimensions, or more) is true
+        (Chan et al.'s parallel update; a feature with no new sample keeps its statistics)."""
+        if not self.enabled:
+            return
+        dims = tuple(range(x.dim() - self.mean.dim()))  # the sample dimensions
+        w = mask.to(x.dtype).reshape(*mask.shape, *([1] * (x.dim() - mask.dim())))
+        k = w.sum(dims).expand_as(self.count)
+        mean = (x * w).sum(dims) / k.clamp(min=1)
+        var = (((x - mean) ** 2) * w).sum(dims) / k.clamp(min=1)
+        n0, total = self.count, self.count + k
+        t = total.clamp(min=1)
+        delta = mean - self.mean
+        self.var.copy_(torch.where(total > 0, self.var * n0 / t + var * k / t + delta**2 * n0 * k / t**2, self.var))
+        self.mean.add_(delta * k / t)
+        self.count.copy_(total)
+
+
 class MlpPolicy(nn.Module):
     """pi(a | o, m_rec, id) and Pm(m | o, m_rec, id) for every agent at once, from one set of parameters."""
 
-    def __init__(self, layout: EnvLayout, messages: str, hidden: tuple[int, ...]) -> None:
+    def __init__(self, layout: EnvLayout, messages: str, hidden: tuple[int, ...], obs_norm: bool = False) -> None:
         super().__init__()
         self.layout = layout
+        self.obs_norm = RunningNorm((layout.n, layout.obs_dim), obs_norm)
         n, A = layout.n, layout.action_dim
         self.head: MessageHead = make_head(messages, layout.bits)
         self.register_buffer("agent_ids", torch.eye(n), persistent=False)
@@ -113,7 +155,7 @@ class MlpPolicy(nn.Module):
         message logits `(N, n, out)`."""
         N, n = obs.shape[:2]
         ids: torch.Tensor = self.agent_ids  # type: ignore[assignment]
-        x = torch.cat([obs.float(), ids.expand(N, n, n), self.head.encode(received).flatten(2)], -1)
+        x = torch.cat([self.obs_norm(obs.float()), ids.expand(N, n, n), self.head.encode(received).flatten(2)], -1)
         h = self.trunk(x)
         return self.action_out(h), self.message_out(h)
 
@@ -123,9 +165,12 @@ class MlpCritic(nn.Module):
 
     `with_message=True` is V1 (standard estimator), `False` V2 (improved estimator)."""
 
-    def __init__(self, layout: EnvLayout, messages: str, hidden: tuple[int, ...], with_message: bool) -> None:
+    def __init__(
+        self, layout: EnvLayout, messages: str, hidden: tuple[int, ...], with_message: bool, obs_norm: bool = False
+    ) -> None:
         super().__init__()
         self.layout, self.with_message = layout, with_message
+        self.state_norm = RunningNorm((layout.state_size,), obs_norm)
         self.head = make_head(messages, layout.bits)
         n, A = layout.n, layout.action_dim
         extra = layout.slots * self.head.in_features if with_message else 0
@@ -152,7 +197,7 @@ class MlpCritic(nn.Module):
         """`state (M, Ds)`, `viewpoint (M,)`, `actions (M, n[, A])`, `given (M, n)`, `received (M, slots, K)`
         -> `(M,)`."""
         parts = [
-            state.float(),
+            self.state_norm(state.float()),
             nn.functional.one_hot(viewpoint, self.layout.n).float(),
             self.encode_actions(actions, given),
         ]
