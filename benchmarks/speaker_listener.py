@@ -20,7 +20,7 @@ with a 95% Student's t interval (`bitcomm.studies.stats`) and the information th
 about the goal colour (estimated from counts over 256 episodes), and writes it into docs/env_learning.md between
 markers. Finished runs are skipped and unfinished ones resumed, so the script can be stopped and rerun.
 
-    python benchmarks/speaker_listener.py [--episodes 7040] [--seeds 3] [--jobs 1] [--threads 1] [--techniques]
+    python benchmarks/speaker_listener.py [--episodes 8960] [--seeds 3] [--jobs 1] [--threads 1] [--techniques]
         [--out runs/speaker_listener] [--bits 3] [--eval-episodes 1000] [--only NAME,...] [--no-docs]
 """
 
@@ -186,7 +186,7 @@ def write_docs(text: str, command: str) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--episodes", type=int, default=7040, help="training episodes per run (about 3 min at 1 thread)")
+    p.add_argument("--episodes", type=int, default=8960, help="training episodes per run (about 3 min at 1 thread)")
     p.add_argument("--num-envs", type=int, default=64, help="episodes per batch")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--bits", type=int, default=3)
