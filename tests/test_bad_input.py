@@ -45,6 +45,10 @@ BAD_TEXT: dict[str, list[str]] = {
     "--param": ["nonsense", "delay=", "delay=300", "flip_prob=nan", "act_delay=abc", "delay=1.5"],
     "--onnx": ["no/such/file.onnx", FILE],
     "--address": ["nonsense", "host:0", "host:99999", "ray://", "127.0.0.1:6379"],  # the last: no --backend ray
+    "--env": ["no_such_module_xyz:make", "json:nosuch", "json:JSONDecoder", "no-colon"],
+    "--env-kwargs": ["[1]", "{bad"],
+    "--topology": ["star", "[[1]]", "{"],
+    "--fixed-actions": ["[1]", "{bad"],
 }
 """Text flags with a syntax of their own (`--onnx` of deploy reads a file; export's writes one)."""
 

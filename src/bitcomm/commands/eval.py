@@ -28,11 +28,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from bitcomm.commands import env_train
+    from bitcomm.learn.env_run import env_run_config
     from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
     from bitcomm.policies.controller import Controller
     from bitcomm.policies.evaluation import evaluate
     from bitcomm.policies.source import resolve_task
 
+    if env_run_config(args.run_path) is not None:
+        return env_train.evaluate(args)
     controller = Controller.load(args.run_path, seed=args.seed)
     task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", strict=True)
     check_eval(task, args.episodes)

@@ -14,7 +14,9 @@ import os
 from pathlib import Path
 
 from bitcomm.commands.backend_flags import add_backend_flags, execution
+from bitcomm.commands import env_train
 from bitcomm.commands.common import add_task_flags, task_from_args
+from bitcomm.commands.env_flags import add_env_flags
 from bitcomm.commands.flags import MAX_EVAL_EPISODES, MAX_JOBS, MAX_TRAIN_EPISODES, SEED, check_train, integer, out_dir
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
 from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
@@ -56,6 +58,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_learning_flags(p)
     add_backend_flags(p)
     add_task_flags(p)
+    add_env_flags(p)
     p.set_defaults(run=run)
 
 
@@ -76,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.learn.run import train
     from bitcomm.learn.run_folder import resume_config
 
+    if args.env is not None or (args.resume and env_train.is_env_run(args.out)):
+        return env_train.train(args, args.threads or default_threads())
+    env_train.check_env_only(args)
     out = args.out or Path("runs") / f"{args.recipe}-{args.estimator}-{args.messages}-s{args.seed}"
     if args.resume:
         cfg = resume_config(out, args.episodes)

@@ -3,7 +3,8 @@ of everything below), the gradient estimators (`estimators.py`, SPEC section 4),
 (`objectives.py`: policy gradient, critic, entropy, and the auxiliary terms), the learner that sums, clips
 and steps them (`learner.py`), the configs and recipes (`config.py`, `recipes.py`, `options.py`), and
 the trainers: `run.py` (the entry point and the sync trainer), `a3c.py`, with the run folder both
-write (`run_folder.py`).
+write (`run_folder.py`). The same core on any channel-wrapped PettingZoo env: `env_config.py`,
+`env_rollout.py`, `env_learner.py` (multi-recipient credit), `env_run.py`, `env_eval.py`.
 
 May import: `bitcomm.config`, `bitcomm.errors`, `bitcomm.checkpoint`, `bitcomm.run_lock`,
 `bitcomm.plotting`, `bitcomm.channel`, `bitcomm.envs`, `bitcomm.policies`. Importing the package

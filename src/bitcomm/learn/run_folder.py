@@ -21,7 +21,7 @@ import subprocess
 import sys
 from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -79,7 +79,17 @@ def oracle_level(cfg: TrainConfig, episodes: int = 2000) -> float | None:
         return None
 
 
-def write_config(cfg: TrainConfig, out: Path, extra: dict[str, Any]) -> None:
+class RunConfig(Protocol):
+    """What the run folder reads of a config: the grid's `TrainConfig` or a wrapped env's `EnvTrainConfig`."""
+
+    @property
+    def seed(self) -> int: ...
+    @property
+    def keep_checkpoints(self) -> int: ...
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+def write_config(cfg: RunConfig, out: Path, extra: dict[str, Any]) -> None:
     record = {
         **cfg.to_dict(),
         "seed": cfg.seed,
@@ -173,8 +183,10 @@ class Logger:
         self.tb.close()
 
 
-def plot_learning_curve(out: Path) -> Path:
-    """learning_curve.png and .svg from metrics.csv (and the oracle's level from config.json); returns the PNG."""
+def plot_learning_curve(out: Path, metric: str = "episode_length") -> Path:
+    """learning_curve.png and .svg from metrics.csv (and the oracle's level from config.json); returns the PNG.
+
+    `metric`: the `charts/<metric>` column and its `_rolling` mean (a run on a wrapped env plots `team_return`)."""
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     with (out / "metrics.csv").open(newline="") as f:
@@ -184,17 +196,23 @@ def plot_learning_curve(out: Path) -> Path:
     ax = fig.subplots()
     if rows:
         x = np.array([float(r["episodes"]) for r in rows])
-        batch = [float(r["charts/episode_length"]) for r in rows]
-        rolling = [float(r["charts/episode_length_rolling"]) for r in rows]
+        batch = [float(r[f"charts/{metric}"]) for r in rows]
+        rolling = [float(r[f"charts/{metric}_rolling"]) for r in rows]
         ax.plot(x, batch, color="C0", alpha=0.25, lw=0.8, label="batch mean")
         ax.plot(x, rolling, color="C0", label=f"last {ROLLING} episodes")
     if config.get("oracle_mean_episode_length") is not None:
         ax.axhline(config["oracle_mean_episode_length"], color="k", ls="--", lw=1, label="oracle")
     ax.set_xlabel("episodes")
-    cut, limit = config.get("train_max_steps") or 0, config["task"]["env"]["max_steps"]
-    ax.set_ylabel("mean episode length" + (f" (training episodes cut at {cut})" if 0 < cut < limit else ""))
-    messages = config.get("model", {}).get("messages")
-    ax.set_title(f"{config.get('estimator')} + {messages} ({config.get('recipe')}), seed {config.get('seed')}")
+    if "task" in config:
+        cut, limit = config.get("train_max_steps") or 0, config["task"]["env"]["max_steps"]
+        ax.set_ylabel("mean episode length" + (f" (training episodes cut at {cut})" if 0 < cut < limit else ""))
+        messages = config.get("model", {}).get("messages")
+        ax.set_title(f"{config.get('estimator')} + {messages} ({config.get('recipe')}), seed {config.get('seed')}")
+    else:
+        ax.set_ylabel(f"mean {metric.replace('_', ' ')}")
+        ax.set_title(
+            f"{config.get('env')}: {config.get('estimator')} + {config.get('messages')}, seed {config.get('seed')}"
+        )
     ax.legend(loc="upper right")
     fig.tight_layout()
     return save_figure(fig, out / "learning_curve.png")[0]
@@ -253,7 +271,7 @@ def has_checkpoint(out: Path) -> bool:
     return (out / CHECKPOINTS / LATEST).is_file()
 
 
-def prepare(cfg: TrainConfig, out: Path, resume: bool) -> dict[str, Any] | None:
+def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
     """Check the folder (its lock held) and clear what a killed run left; on resume return the
     checkpoint's state (with its weights), else None."""
     if not resume:
@@ -281,9 +299,15 @@ def finite_or_stop(out: Path, learner: Any, episodes: int) -> None:
 
 
 def save_run_checkpoint(
-    out: Path, cfg: TrainConfig, weights: dict[str, dict[str, torch.Tensor]], prog: Progress, state: dict[str, Any]
+    out: Path,
+    cfg: RunConfig,
+    weights: dict[str, dict[str, torch.Tensor]],
+    prog: Progress,
+    state: dict[str, Any],
+    metric: str = "episode_length",
 ) -> Path:
-    """One checkpoint of the run (sync or a3c), ranked by its rolling mean length for retention, then the plot."""
+    """One checkpoint of the run (sync, a3c or a wrapped env), ranked by its rolling mean length for retention,
+    then the plot of `metric`."""
     rolling = float(np.mean(prog.recent)) if prog.recent else None
     path = save_checkpoint(
         out,
@@ -295,5 +319,5 @@ def save_run_checkpoint(
         rolling_length=rolling,
         keep=cfg.keep_checkpoints,
     )
-    plot_learning_curve(out)
+    plot_learning_curve(out, metric)
     return path

@@ -1,5 +1,6 @@
 """Policies and how they are played: the networks (`networks.py`: policy and critic, with their
-observation encoders) and message heads (`heads.py`), the learned policy as a numpy-in/numpy-out
+observation encoders) and message heads (`heads.py`), the MLP policy and critic for any wrapped
+env's vector observations (`mlp.py`), the learned policy as a numpy-in/numpy-out
 `Controller` and its ONNX form (`onnx_export.py`, `onnx_policy.py`), the reference policies
 (`reference.py`: oracle, random), the per-agent view every runtime shares (`agent_policies.py`),
 where a command's policy comes from (`source.py`) and the one evaluator (`evaluation.py`).

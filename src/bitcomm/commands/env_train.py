@@ -1,0 +1,119 @@
+"""`bitcomm train --env ...` and `bitcomm eval RUN` for runs on a wrapped PettingZoo env (not a subcommand:
+`train` and `eval` hand over here when the run is not on the grid)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from bitcomm.commands.env_flags import ENV_ONLY
+from bitcomm.commands.learning_flags import learning_overrides
+from bitcomm.errors import bad_value
+
+RENAMED = {"entropy_move": "entropy_action"}
+"""Learning flags whose field has another name in `EnvTrainConfig` (the env's own actions are not moves)."""
+SUPPORTED = {
+    "num_envs", "lr", "critic_lr", "gamma", "entropy_move", "entropy_message", "max_grad_norm", "epochs",
+    "minibatches", "clip", "adv_norm", "checkpoint_seconds", "keep_checkpoints", "hidden",
+}  # fmt: skip
+"""The learning flags that mean something with --env."""
+
+
+def is_env_run(path: Path | str | None) -> bool:
+    """A run folder (by its config.json) trained on a wrapped env."""
+    if path is None or not (Path(path) / "config.json").is_file():
+        return False
+    try:
+        record = json.loads((Path(path) / "config.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(record, dict) and isinstance(record.get("env"), str) and "task" not in record
+
+
+def env_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The learning flags given on the command line, as `EnvTrainConfig` fields; one line for one that does
+    not apply to a wrapped env."""
+    out: dict[str, Any] = {}
+    for name, value in learning_overrides(args).items():
+        if name not in SUPPORTED:
+            raise bad_value(
+                name.replace("_", "-"), value, f"not used with --env (those are: {', '.join(sorted(SUPPORTED))})"
+            )
+        out[RENAMED.get(name, name)] = (value, value) if name == "hidden" else value
+    return out
+
+
+def train(args: argparse.Namespace, threads: int | None) -> int:
+    """Train on the env of `--env` (or resume such a run); `threads`: torch threads (None: OMP_NUM_THREADS)."""
+    import torch
+
+    from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
+    from bitcomm.learn.env_eval import evaluate_env
+    from bitcomm.learn.env_run import resume_env_config, train_env
+
+    if getattr(args, "address", None) is not None:  # the Ray backend trains the grid only
+        raise bad_value("address", args.address, "not used with --env")
+    if args.resume:
+        if args.out is None:
+            raise bad_value("resume", True, "give the run folder with --out")
+        cfg = resume_env_config(args.out, args.episodes)
+    else:
+        channel = EnvChannelConfig(
+            bits=args.bits, delay=args.delay, flip_prob=args.flip_prob, drop_prob=args.drop_prob,
+            topology=args.topology if args.topology is not None else "all", fixed_actions=args.fixed_actions,
+        )  # fmt: skip
+        extra: dict[str, Any] = {"episodes": args.episodes} if args.episodes is not None else {}
+        if args.obs_norm is not None:
+            extra["obs_norm"] = args.obs_norm
+        cfg = EnvTrainConfig(
+            env=args.env, env_kwargs=args.env_kwargs or {}, channel=channel, estimator=args.estimator,
+            messages=args.messages, seed=args.seed, **extra, **env_overrides(args),
+        )  # fmt: skip
+    module = cfg.env.partition(":")[0].rpartition(".")[2]
+    out = args.out or Path("runs") / f"env-{module}-{cfg.estimator}-{cfg.messages}-s{cfg.seed}"
+    if threads is not None:
+        torch.set_num_threads(threads)
+    print(f"run folder: {out}{' (resumed)' if args.resume else ''}; env {cfg.env}", flush=True)
+    checkpoint = train_env(cfg, out, resume=args.resume, progress=not args.quiet)
+    print(f"checkpoint: {checkpoint}")
+    if args.eval_episodes:
+        print_env_result(
+            evaluate_env(checkpoint, args.eval_episodes, cfg.seed), False, f"eval (sampling, seed {cfg.seed})"
+        )
+    return 0
+
+
+def check_env_only(args: argparse.Namespace) -> None:
+    """Without --env, the flags that only a wrapped env reads are refused (one line)."""
+    for name in ENV_ONLY:
+        value = getattr(args, name, None)
+        if value is not None:
+            raise bad_value(name.replace("_", "-"), value, "only with --env PACKAGE.MODULE:FACTORY")
+
+
+def evaluate(args: argparse.Namespace) -> int:
+    """`bitcomm eval RUN` on a wrapped-env run: only --drop-prob of the task flags applies."""
+    from bitcomm.learn.env_eval import evaluate_env
+    from bitcomm.policies.source import given_task_flags
+
+    given = given_task_flags(args)
+    other = sorted(set(given) - {"drop_prob"})
+    if other:
+        raise bad_value(other[0].replace("_", "-"), given[other[0]], "a run on a wrapped env takes only --drop-prob")
+    result = evaluate_env(args.run_path, args.episodes, args.seed, given.get("drop_prob"), greedy=args.greedy)
+    print_env_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
+    return 0
+
+
+def print_env_result(result: Any, as_json: bool, title: str) -> None:
+    if as_json:
+        print(json.dumps(result.to_dict()))
+        return
+    (rlo, rhi), (llo, lhi) = result.return_ci95, result.length_ci95
+    print(
+        f"{title}: {result.episodes} episodes, mean team return {result.mean_team_return:.3f} "
+        f"(95% CI {rlo:.3f} to {rhi:.3f}), mean episode length {result.mean_episode_length:.2f} "
+        f"(95% CI {llo:.2f}-{lhi:.2f})"
+    )

@@ -1,0 +1,207 @@
+"""B copies of a channel-wrapped PettingZoo env stepped together, as arrays over `(B, n, ...)`.
+
+The learner speaks arrays; a wrapped env (`bitcomm.envs.channel_wrapper.BitChannel`) speaks dicts keyed by
+agent name. This module is the one place that converts, so nothing above it loops over agents:
+
+- observations `(B, n, D)` float32: each agent's inner observation flattened and zero-padded to the widest
+  (`EnvLayout.obs_sizes` holds each agent's true size); zeros for an agent that is not present;
+- received messages `(B, n, slots, K)` uint8, as the wrapper delivers them;
+- the critic's state `(B, Ds)` float32: the inner env's `state()`, or, where it has none, every agent's
+  padded observation concatenated (`n * D`);
+- `alive (B, n)`: the agent is present (in `env.agents`) and acts at this step;
+- rewards `(B, n)`, `dropped (B, n)` (the message the agent sent this step was lost), `ended (B,)`.
+
+The inner envs are Python objects stepped one at a time, so the loop over the B copies stays; an env
+whose episode has ended is not stepped again until the next `reset`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from bitcomm.errors import bad_value
+
+
+@dataclass(frozen=True, eq=False)
+class EnvLayout:
+    """The shapes a wrapped env's arrays take, read once from its spaces: what the networks are built for."""
+
+    agents: tuple[str, ...]
+    obs_sizes: tuple[int, ...]
+    """Each agent's flattened inner observation size (padded to `obs_dim` in the arrays)."""
+    slots: int
+    bits: int
+    delay: int
+    discrete: bool
+    """True: every agent's inner action is Discrete; False: every one is a Box."""
+    action_sizes: tuple[int, ...]
+    """Discrete: each agent's number of actions; Box: each agent's flattened action size."""
+    low: np.ndarray
+    """(n, action_dim) Box lower bounds (padding 0); unused for Discrete."""
+    high: np.ndarray
+    state_size: int
+    has_state: bool
+    """The inner env has `state()`; otherwise the state is the concatenated padded observations."""
+    fixed: np.ndarray
+    """(n,) bool: agents whose inner action the wrapper fixes (`fixed_actions`): their action head learns nothing."""
+    recipients: np.ndarray
+    """(n, n) bool: [j, x] = x hears j."""
+
+    @property
+    def n(self) -> int:
+        return len(self.agents)
+
+    @property
+    def obs_dim(self) -> int:
+        return max(self.obs_sizes)
+
+    @property
+    def action_dim(self) -> int:
+        return max(self.action_sizes)
+
+    @property
+    def action_mask(self) -> np.ndarray:
+        """(n, action_dim) bool: which actions (Discrete) or dimensions (Box) each agent has."""
+        return np.arange(self.action_dim)[None, :] < np.asarray(self.action_sizes)[:, None]
+
+    @classmethod
+    def of(cls, env: Any) -> EnvLayout:
+        """Read a wrapped env's spaces (it is reset once, to find whether it has a state and its size)."""
+        agents = tuple(env.possible_agents)
+        obs_sizes: list[int] = []
+        kinds: list[bool] = []
+        sizes: list[int] = []
+        lows: list[np.ndarray] = []
+        highs: list[np.ndarray] = []
+        for a in agents:
+            obs_space = env.observation_space(a)["observation"]
+            act_space = env.action_space(a)["action"]
+            obs_sizes.append(int(np.prod(obs_space.shape)))
+            if isinstance(act_space, spaces.Discrete):
+                kinds.append(True)
+                sizes.append(int(act_space.n))
+                lows.append(np.zeros(0))
+                highs.append(np.zeros(0))
+            elif isinstance(act_space, spaces.Box):
+                kinds.append(False)
+                sizes.append(int(np.prod(act_space.shape)))
+                lows.append(np.asarray(act_space.low, np.float32).ravel())
+                highs.append(np.asarray(act_space.high, np.float32).ravel())
+            else:
+                raise bad_value(f"action_space({a!r})", act_space, "learning supports Discrete or Box actions")
+        if len(set(kinds)) != 1:
+            raise bad_value("env", type(env.inner).__name__, "agents mix Discrete and Box actions; use one kind")
+        width = max(sizes)
+        low, high = np.zeros((len(agents), width), np.float32), np.zeros((len(agents), width), np.float32)
+        for i, (lo, hi) in enumerate(zip(lows, highs, strict=True)):
+            low[i, : lo.size], high[i, : hi.size] = lo, hi
+        env.reset(seed=0)
+        state = inner_state(env)
+        has_state = state is not None
+        state_size = int(state.size) if state is not None else len(agents) * max(obs_sizes)
+        fixed = np.array([a in (env.fixed_actions or {}) for a in agents], dtype=bool)
+        return cls(
+            agents, tuple(obs_sizes), int(env.slot_senders.shape[1]), int(env.bits), int(env.delay), kinds[0],
+            tuple(sizes), low, high, state_size, has_state, fixed, np.asarray(env.recipients, dtype=bool),
+        )  # fmt: skip
+
+
+def inner_state(env: Any) -> np.ndarray | None:
+    """The env's global state flattened, or None where it has none (PettingZoo's default raises)."""
+    try:
+        return np.asarray(env.state(), dtype=np.float32).ravel()
+    except (AttributeError, NotImplementedError):
+        return None
+
+
+class VecObservation(NamedTuple):
+    """What the B copies show at one step (rows of ended copies are zeros)."""
+
+    obs: np.ndarray  # (B, n, D) float32
+    received: np.ndarray  # (B, n, slots, K) uint8
+    state: np.ndarray  # (B, Ds) float32
+    alive: np.ndarray  # (B, n) bool
+
+
+class VecStep(NamedTuple):
+    """The outcome of one step of the B copies."""
+
+    next: VecObservation
+    rewards: np.ndarray  # (B, n) float32, 0 for absent agents
+    dropped: np.ndarray  # (B, n) bool: the message the agent sent this step was lost
+    ended: np.ndarray  # (B,) bool: the copy's episode ended with this step
+
+
+class VecEnv:
+    """B wrapped envs made by `make()`; `reset(seeds)` then `step(...)` until every copy has ended."""
+
+    def __init__(self, make: Callable[[], ParallelEnv], num_envs: int) -> None:
+        self.envs = [make() for _ in range(num_envs)]
+        self.layout = EnvLayout.of(self.envs[0])
+        self.num_envs = num_envs
+        self.running = np.zeros(num_envs, dtype=bool)
+
+    def _empty(self) -> VecObservation:
+        L, B = self.layout, self.num_envs
+        return VecObservation(
+            np.zeros((B, L.n, L.obs_dim), np.float32),
+            np.zeros((B, L.n, L.slots, L.bits), np.uint8),
+            np.zeros((B, L.state_size), np.float32),
+            np.zeros((B, L.n), bool),
+        )
+
+    def _write(self, out: VecObservation, b: int, obs: dict[str, Any]) -> None:
+        """Row b of `out` from one copy's observation dict (the only per-agent loop: dicts to arrays)."""
+        env, L = self.envs[b], self.layout
+        live = set(env.agents)
+        for i, a in enumerate(L.agents):
+            if a in live and a in obs:
+                out.obs[b, i, : L.obs_sizes[i]] = np.asarray(obs[a]["observation"], np.float32).ravel()
+                out.received[b, i] = obs[a]["messages"]
+                out.alive[b, i] = True
+        state = inner_state(env) if L.has_state else None
+        out.state[b] = state if state is not None else out.obs[b].ravel()
+
+    def reset(self, seeds: Sequence[int] | np.ndarray) -> VecObservation:
+        out = self._empty()
+        for b, env in enumerate(self.envs):
+            obs, _ = env.reset(seed=int(seeds[b]))
+            self._write(out, b, obs)
+        self.running[:] = True
+        return out
+
+    def step(self, actions: np.ndarray, messages: np.ndarray) -> VecStep:
+        """`actions (B, n)` int (Discrete) or `(B, n, A)` float (Box, clipped to the bounds here),
+        `messages (B, n, K)` uint8; entries of absent agents and ended copies are ignored."""
+        L = self.layout
+        out = self._empty()
+        rewards = np.zeros((self.num_envs, L.n), np.float32)
+        dropped = np.zeros((self.num_envs, L.n), bool)
+        ended = np.zeros(self.num_envs, bool)
+        if not L.discrete:
+            actions = np.clip(actions, L.low, L.high)
+        for b in np.flatnonzero(self.running):
+            env = self.envs[b]
+            acting = [(i, a) for i, a in enumerate(L.agents) if a in env.agents]
+            joint = {a: {"action": self._action(actions[b, i], i), "message": messages[b, i]} for i, a in acting}
+            obs, rew, term, trunc, infos = env.step(joint)
+            for i, a in acting:
+                rewards[b, i] = rew.get(a, 0.0)
+                dropped[b, i] = bool(infos.get(a, {}).get("message_dropped", False))
+            if not env.agents or all(term.get(a, False) or trunc.get(a, False) for _, a in acting):
+                ended[b] = True
+                self.running[b] = False
+            else:
+                self._write(out, int(b), obs)
+        return VecStep(out, rewards, dropped, ended)
+
+    def _action(self, action: np.ndarray, i: int) -> Any:
+        if self.layout.discrete:
+            return int(action)
+        return np.asarray(action[: self.layout.action_sizes[i]], np.float32)

@@ -1,0 +1,74 @@
+"""Measure a policy trained on a wrapped env: mean team return and episode length over seeded episodes.
+
+Episodes are played in chunks of B first episodes, chunk c seeded by `SeedSequence(seed, spawn_key=(c,))`
+and sampling from a generator seeded with `seed`, so two policies measured with one seed face the same
+episodes. Intervals are 95% normal intervals over episodes (1.96 standard errors). `drop_prob` replaces
+the channel's drop probability (1 cuts the channel: the learned no-communication level of the same network).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bitcomm.checkpoint import load_weights
+from bitcomm.learn.env_config import EnvTrainConfig
+from bitcomm.learn.env_rollout import make_vec, play
+from bitcomm.policies.mlp import MlpPolicy
+
+EVAL_CHUNK = 256
+"""Episodes played side by side."""
+
+
+@dataclass(frozen=True)
+class EnvEvalResult:
+    episodes: int
+    mean_team_return: float
+    return_ci95: tuple[float, float]
+    mean_episode_length: float
+    length_ci95: tuple[float, float]
+
+    def to_dict(self) -> dict[str, object]:
+        out = asdict(self)
+        out["return_ci95"], out["length_ci95"] = list(self.return_ci95), list(self.length_ci95)
+        return out
+
+
+def _interval(x: np.ndarray) -> tuple[float, tuple[float, float]]:
+    mean = float(np.mean(x))
+    half = 1.96 * float(np.std(x, ddof=1)) / math.sqrt(len(x)) if len(x) > 1 else 0.0
+    return mean, (mean - half, mean + half)
+
+
+def load_env_policy(path: Path | str) -> tuple[EnvTrainConfig, MlpPolicy]:
+    """The config and policy of a wrapped-env checkpoint (a run folder: its latest)."""
+    weights, info = load_weights(path)
+    cfg = EnvTrainConfig.from_dict(info["config"])
+    vec = make_vec(cfg, 1)
+    policy = MlpPolicy(vec.layout, cfg.messages, cfg.hidden, cfg.obs_norm)
+    policy.load_state_dict(weights["policy"])
+    return cfg, policy.eval()
+
+
+def evaluate_env(
+    path: Path | str, episodes: int, seed: int, drop_prob: float | None = None, greedy: bool = False
+) -> EnvEvalResult:
+    """Play `episodes` seeded episodes with the policy of `path` on its env (channel drops changed by `drop_prob`)."""
+    cfg, policy = load_env_policy(path)
+    vec = make_vec(cfg, min(episodes, EVAL_CHUNK), drop_prob)
+    generator = torch.Generator().manual_seed(seed)
+    returns: list[np.ndarray] = []
+    lengths: list[np.ndarray] = []
+    chunk = 0
+    while sum(len(r) for r in returns) < episodes:
+        ro = play(vec, policy, np.random.SeedSequence(seed, spawn_key=(chunk,)), generator, greedy=greedy)
+        returns.append(ro.team_return)
+        lengths.append(ro.length)
+        chunk += 1
+    ret, ret_ci = _interval(np.concatenate(returns)[:episodes])
+    length, len_ci = _interval(np.concatenate(lengths)[:episodes].astype(np.float64))
+    return EnvEvalResult(episodes, ret, ret_ci, length, len_ci)

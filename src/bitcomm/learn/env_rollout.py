@@ -1,0 +1,107 @@
+"""Whole episodes of a wrapped PettingZoo env, played by an `MlpPolicy` into `(T, B, n, ...)` tensors.
+
+As on the grid (`rollout.py`), a batch plays B first episodes from their first step to their end, so
+returns are Monte Carlo; steps after a copy's episode ended are padding (`valid` false). The team reward
+of a step is the mean of the rewards of the agents present at it (so an env that gives every agent the
+same reward keeps it as it is, and one whose agents leave does not count them after they left).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from bitcomm.envs.factory import make_parallel_env
+from bitcomm.envs.vector import VecEnv
+from bitcomm.learn.env_config import EnvTrainConfig
+from bitcomm.policies.mlp import MlpPolicy
+
+
+class EnvRollout(NamedTuple):
+    """B whole episodes, time-major. `T` steps, `B` episodes, `n` agents, `D` padded observation size."""
+
+    obs: torch.Tensor  # (T, B, n, D) float32
+    received: torch.Tensor  # (T, B, n, slots, K) uint8
+    state: torch.Tensor  # (T, B, Ds) float32
+    alive: torch.Tensor  # (T, B, n) bool: the agent acts at this step
+    actions: torch.Tensor  # (T, B, n) int64 (Discrete) or (T, B, n, A) float32 (Box), as sampled
+    bits: torch.Tensor  # (T, B, n, K) uint8, as sent
+    logp_action: torch.Tensor  # (T, B, n) at acting time
+    logp_message: torch.Tensor  # (T, B, n)
+    dropped: torch.Tensor  # (T, B, n) bool
+    rewards: torch.Tensor  # (T, B) team reward: mean over the agents present
+    done: torch.Tensor  # (T, B) bool: the episode ended after this step
+    valid: torch.Tensor  # (T, B) bool
+    length: np.ndarray  # (B,) episode lengths
+    team_return: np.ndarray  # (B,) undiscounted sum of team rewards
+
+
+def env_factory(cfg: EnvTrainConfig, drop_prob: float | None = None) -> Callable[[], object]:
+    """A maker of the wrapped env of `cfg` (with another drop probability, e.g. 1 to cut the channel)."""
+    from bitcomm.envs.channel_wrapper import BitChannel
+
+    ch = cfg.channel if drop_prob is None else dataclasses.replace(cfg.channel, drop_prob=drop_prob)
+    topology = ch.topology if isinstance(ch.topology, str) else [(str(s), str(r)) for s, r in ch.topology]
+
+    def make() -> object:
+        return BitChannel(
+            make_parallel_env(cfg.env, cfg.env_kwargs), bits=ch.bits, delay=ch.delay, flip_prob=ch.flip_prob,
+            drop_prob=ch.drop_prob, topology=topology, fixed_actions=ch.fixed_actions,
+        )  # fmt: skip
+
+    return make
+
+
+def batch_seeds(seed: np.random.SeedSequence, num_envs: int) -> np.ndarray:
+    """One env seed per copy (32 bits, what PettingZoo envs take), fixed by the batch's SeedSequence."""
+    return seed.generate_state(num_envs)
+
+
+@torch.no_grad()
+def play(
+    vec: VecEnv,
+    policy: MlpPolicy,
+    seed: np.random.SeedSequence,
+    generator: torch.Generator | None,
+    greedy: bool = False,
+) -> EnvRollout:
+    """Play one first episode in each of the B copies, sampling (or, `greedy`, the most likely action and
+    message); actions and messages of absent agents are drawn but never sent."""
+    B = vec.num_envs
+    ob = vec.reset(batch_seeds(seed, B))
+    dist = policy.actions
+    steps: list[tuple[np.ndarray, ...]] = []
+    valid_now = np.ones(B, bool)
+    length, team_return = np.zeros(B, np.int64), np.zeros(B)
+    while valid_now.any():
+        obs, received = torch.from_numpy(ob.obs), torch.from_numpy(ob.received)
+        act_out, msg_logits = policy(obs, received)
+        if greedy:
+            actions, bits = dist.mode(act_out), policy.head.mode(msg_logits)
+        else:
+            actions, bits = dist.sample(act_out, generator), policy.head.sample(msg_logits, generator)
+        logp_a, logp_m = dist.log_prob(act_out, actions), policy.head.log_prob(msg_logits, bits)
+        a_np, bits_np = actions.numpy(), bits.numpy()
+        st = vec.step(a_np, bits_np)
+        alive = ob.alive & valid_now[:, None]
+        present = alive.sum(1)
+        team = np.where(present > 0, (st.rewards * alive).sum(1) / np.maximum(present, 1), 0.0).astype(np.float32)
+        team = np.where(valid_now, team, 0.0).astype(np.float32)
+        steps.append(
+            (ob.obs, ob.received, ob.state, alive, a_np, bits_np, logp_a.numpy(), logp_m.numpy(),
+             st.dropped & alive, team, st.ended & valid_now, valid_now.copy())
+        )  # fmt: skip
+        length += valid_now
+        team_return += team
+        valid_now = valid_now & ~st.ended
+        ob = st.next
+    c = [torch.from_numpy(np.stack(x)) for x in zip(*steps, strict=True)]
+    return EnvRollout(c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9], c[10], c[11], length, team_return)
+
+
+def make_vec(cfg: EnvTrainConfig, num_envs: int, drop_prob: float | None = None) -> VecEnv:
+    return VecEnv(env_factory(cfg, drop_prob), num_envs)  # type: ignore[arg-type]

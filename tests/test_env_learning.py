@@ -1,0 +1,313 @@
+"""Learning on any PettingZoo env wrapped in bitcomm's channel (SPEC sections 4, 7 and 8; issue 18).
+
+A test-local env, `SignalEnv`, has a speaker that sees a random bit and a listener that is rewarded for
+acting on it one step later: only the channel can carry it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from bitcomm.cli import main
+from bitcomm.envs.vector import EnvLayout, VecEnv
+from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
+from bitcomm.learn.env_eval import evaluate_env
+from bitcomm.learn.env_learner import EnvLearner
+from bitcomm.learn.env_rollout import EnvRollout, env_factory, play
+from bitcomm.learn.env_run import train_env
+from bitcomm.learn.estimators import Advantages, discounted_returns
+
+SPEC = f"{__name__}:SignalEnv"
+
+
+class SignalEnv(ParallelEnv):
+    """Speaker (obs: the bit; 1 action) and listener (obs: 3 numbers, no bit; 2 actions). From step 1 on, the
+    listener earns 1 when its action equals the bit. `steps` steps; with `speaker_leaves` the speaker
+    terminates after step 0; with `box`, Box actions (speaker 1 number, listener 2; the listener's action is
+    1 when its first number is positive). No `state()`: the critic reads the concatenated observations."""
+
+    metadata = {"name": "signal_v0"}
+
+    def __init__(self, steps: int = 2, speaker_leaves: bool = False, box: bool = False) -> None:
+        self.possible_agents = ["speaker", "listener"]
+        self.agents: list[str] = []
+        self.steps, self.speaker_leaves = steps, speaker_leaves
+        self._obs = {"speaker": spaces.Box(0, 1, (1,), np.float32), "listener": spaces.Box(0, 1, (3,), np.float32)}
+        self._act: dict[str, spaces.Space] = {"speaker": spaces.Discrete(1), "listener": spaces.Discrete(2)}
+        if box:
+            self._act = {a: spaces.Box(-1, 1, (k,), np.float32) for a, k in (("speaker", 1), ("listener", 2))}
+        self.box = box
+
+    def observation_space(self, agent: str) -> spaces.Space:
+        return self._obs[agent]
+
+    def action_space(self, agent: str) -> spaces.Space:
+        return self._act[agent]
+
+    def _observe(self) -> dict[str, np.ndarray]:
+        return {
+            "speaker": np.array([self.bit], np.float32),
+            "listener": np.array([0.5, 0.5, self.t / self.steps], np.float32),
+        }
+
+    def reset(self, seed: int | None = None, options: Any = None) -> tuple[dict, dict]:
+        self.bit, self.t = int(np.random.default_rng(seed).integers(2)), 0
+        self.agents = list(self.possible_agents)
+        return self._observe(), {a: {} for a in self.agents}
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        act = actions["listener"]
+        if self.box:
+            assert np.all(np.abs(act) <= 1), act  # clipped to the bounds before it reaches the env
+        r = float(self.t >= 1 and int(act[0] > 0 if self.box else act) == self.bit)
+        self.t += 1
+        acting = list(self.agents)
+        trunc = {a: self.t >= self.steps for a in acting}
+        term = {a: a == "speaker" and self.speaker_leaves for a in acting}
+        self.agents = [a for a in acting if not (trunc[a] or term[a])]
+        obs = self._observe()
+        return {a: obs[a] for a in acting}, {a: r for a in acting}, term, trunc, {a: {} for a in acting}
+
+
+def config(**kw: Any) -> EnvTrainConfig:
+    channel = EnvChannelConfig(**kw.pop("channel", {"bits": 2}))
+    base: dict[str, Any] = dict(env=SPEC, num_envs=8, episodes=16, hidden=(32,), checkpoint_seconds=1e9)
+    return EnvTrainConfig(**{**base, "channel": channel, **kw})
+
+
+# ---------------------------------------------------------------------------------------------- arrays
+def test_vector_env_and_rollout_shapes() -> None:
+    cfg = config(env_kwargs={"steps": 3, "speaker_leaves": True})
+    vec = VecEnv(env_factory(cfg), 4)
+    L = vec.layout
+    assert (L.n, L.obs_sizes, L.obs_dim, L.action_sizes, L.slots, L.bits) == (2, (1, 3), 3, (1, 2), 1, 2)
+    assert not L.has_state and L.state_size == 2 * 3
+    torch.manual_seed(0)
+    learner = EnvLearner(cfg, L)
+    ro = play(vec, learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    T, B = 3, 4
+    assert ro.obs.shape == (T, B, 2, 3) and ro.received.shape == (T, B, 2, 1, 2) and ro.state.shape == (T, B, 6)
+    assert ro.actions.shape == ro.alive.shape == ro.logp_action.shape == ro.dropped.shape == (T, B, 2)
+    assert ro.bits.shape == (T, B, 2, 2) and ro.rewards.shape == ro.valid.shape == (T, B)
+    assert ro.valid.all() and ro.done[-1].all() and not ro.done[:-1].any()
+    assert ro.alive[0].all() and not ro.alive[1:, :, 0].any() and ro.alive[:, :, 1].all()  # the speaker left
+    assert (ro.obs[:, :, 0, 1:] == 0).all()  # padding beyond the speaker's one number
+    assert torch.equal(ro.state[0], ro.obs[0].flatten(1))  # no state(): the padded observations
+    assert (ro.actions[:, :, 0] == 0).all()  # the speaker has one action: the rest are masked
+    np.testing.assert_array_equal(ro.length, [3] * B)
+
+
+def test_box_actions_are_gaussian_and_padded() -> None:
+    cfg = config(env_kwargs={"box": True})
+    vec = VecEnv(env_factory(cfg), 4)
+    assert not vec.layout.discrete and vec.layout.action_sizes == (1, 2)
+    torch.manual_seed(0)
+    learner = EnvLearner(cfg, vec.layout)
+    ro = play(vec, learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    assert ro.actions.shape == (2, 4, 2, 2) and (ro.actions[:, :, 0, 1] == 0).all()  # the speaker's padding
+    dist = learner.policy.actions
+    out, _ = learner.policy(ro.obs[0], ro.received[0])
+    torch.testing.assert_close(dist.log_prob(out, ro.actions[0]), ro.logp_action[0])
+    assert torch.isfinite(torch.tensor(list(learner.update(ro).values()))).all()
+
+
+def test_rollouts_are_seeded() -> None:
+    cfg = config()
+    vec = VecEnv(env_factory(cfg), 4)
+    torch.manual_seed(0)
+    policy = EnvLearner(cfg, vec.layout).policy
+    a, b = (play(vec, policy, np.random.SeedSequence(3), torch.Generator().manual_seed(1)) for _ in range(2))
+    assert all(torch.equal(x, y) for x, y in zip(a[:12], b[:12], strict=True))
+
+
+# ---------------------------------------------------------------------------------------------- credit
+class StubCritic(torch.nn.Module):
+    """V = 1000 t + 100 (viewpoint + 1) + sum_k given_k 2^k: every query tells which it was."""
+
+    with_message = False
+
+    def forward(self, state: torch.Tensor, viewpoint: torch.Tensor, actions: Any, given: torch.Tensor, _: Any) -> Any:
+        return 1000 * state[:, 0] + 100 * (viewpoint + 1) + (given.float() * torch.tensor([1.0, 2.0, 4.0])).sum(1)
+
+
+def test_multi_recipient_credit_by_hand() -> None:
+    """Agent 0 talks to agents 1 and 2, delay 2. Its message at t=0 is credited by both recipients at t=2,
+    at t=1 only by agent 1 (agent 2 is absent at t=3), at t=2 not at all (dropped), later never (arrives
+    after the end). Agents 1 and 2 talk to nobody: their messages get 0."""
+    n, T, d, gamma = 3, 5, 2, 0.5
+    rec = np.zeros((n, n), bool)
+    rec[0, 1] = rec[0, 2] = True
+    layout = EnvLayout(
+        ("a", "b", "c"), (1, 1, 1), 1, 1, d, True, (2, 2, 2), np.zeros((n, 2)), np.zeros((n, 2)), 1, True,
+        np.zeros(n, bool), rec,
+    )  # fmt: skip
+    cfg = config(estimator="improved", gamma=gamma, adv_norm=False, channel={"bits": 1, "delay": d})
+    learner = EnvLearner(cfg, layout)
+    learner.critic = StubCritic()  # type: ignore[assignment]
+    alive = torch.ones(T, 1, n, dtype=torch.bool)
+    alive[3, 0, 2] = False
+    dropped = torch.zeros(T, 1, n, dtype=torch.bool)
+    dropped[2, 0, 0] = True
+    rewards = torch.tensor([[1.0], [2.0], [3.0], [4.0], [5.0]])
+    done, valid = torch.zeros(T, 1, dtype=torch.bool), torch.ones(T, 1, dtype=torch.bool)
+    done[-1] = True
+    z = torch.zeros(T, 1, n)
+    ro = EnvRollout(
+        z[..., None], torch.zeros(T, 1, n, 1, 1, dtype=torch.uint8), torch.arange(T).float().view(T, 1, 1), alive,
+        torch.zeros(T, 1, n, dtype=torch.long), torch.zeros(T, 1, n, 1, dtype=torch.uint8), z, z, dropped, rewards,
+        done, valid, np.array([T]), np.array([15.0]),
+    )  # fmt: skip
+    adv = learner.advantages(ro)
+    q = [1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 4 + 0.0625 * 5, 2 + 1.5 + 1 + 0.625, 3 + 2 + 1.25, 4 + 2.5, 5.0]
+    torch.testing.assert_close(adv.returns[:, 0], torch.tensor(q))
+
+    def v(t: int, viewpoint: int, given: list[int]) -> float:
+        return 1000 * t + 100 * (viewpoint + 1) + sum(2**k for k in given)
+
+    # the message baseline of sender 0 gives only agent 0's action (its recipients' are masked)
+    m0 = [0.25 * ((q[2] - v(2, 1, [0])) + (q[2] - v(2, 2, [0]))), 0.25 * (q[3] - v(3, 1, [0])), 0.0, 0.0, 0.0]
+    torch.testing.assert_close(adv.message[:, 0, 0], torch.tensor(m0))
+    assert (adv.message[:, 0, 1:] == 0).all()
+    # action baselines: every other present agent's action given
+    assert adv.action[3, 0, 0].item() == pytest.approx(q[3] - v(3, 0, [1]))
+    assert adv.action[1, 0, 2].item() == pytest.approx(q[1] - v(1, 2, [0, 1]))
+    assert adv.action[3, 0, 2].item() == 0.0  # agent 2 is absent at t=3
+
+
+def test_returns_are_the_estimators() -> None:
+    r = torch.tensor([[1.0], [1.0]])
+    q = discounted_returns(r, torch.tensor([[False], [True]]), torch.ones(2, 1, dtype=torch.bool), 0.5)
+    torch.testing.assert_close(q[:, 0], torch.tensor([1.5, 1.0]))
+
+
+# ---------------------------------------------------------------------------------------------- purity
+def _batch(cfg: EnvTrainConfig) -> tuple[EnvLearner, EnvRollout]:
+    vec = VecEnv(env_factory(cfg), 8)
+    torch.manual_seed(0)
+    learner = EnvLearner(cfg, vec.layout)
+    return learner, play(vec, learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+
+
+def _grads(learner: EnvLearner, ro: EnvRollout, adv: Advantages) -> dict[str, torch.Tensor]:
+    learner.policy.zero_grad()
+    loss, _ = learner.policy_loss(ro, adv, torch.arange(ro.valid.shape[1]))
+    loss.backward()
+    return {
+        k: p.grad.clone() if p.grad is not None else torch.zeros_like(p) for k, p in learner.policy.named_parameters()
+    }
+
+
+@pytest.mark.parametrize(("clip", "box"), [(0.0, False), (0.2, False), (0.2, True)])
+def test_pure_zero_advantages_and_entropy_give_zero_gradient(clip: float, box: bool) -> None:
+    """SPEC 7: every gradient that reaches the action and message heads is policy gradient + entropy."""
+    learner, ro = _batch(config(entropy_action=0.0, entropy_message=0.0, clip=clip, env_kwargs={"box": box}))
+    zero = Advantages(torch.zeros_like(ro.logp_action), torch.zeros_like(ro.logp_action), torch.zeros_like(ro.rewards))
+    assert all((g == 0).all() for g in _grads(learner, ro, zero).values())
+    grads = _grads(learner, ro, learner.advantages(ro))  # the check can fail: real advantages move both heads
+    assert grads["message_out.weight"].abs().sum() > 0 and grads["action_out.weight"].abs().sum() > 0
+
+
+def test_fixed_agent_gets_no_action_gradient() -> None:
+    """An agent in `fixed_actions`: its recorded actions change neither the loss nor the gradient."""
+    cfg = config(channel={"bits": 2, "fixed_actions": {"listener": 0}})
+    learner, ro = _batch(cfg)
+    adv = learner.advantages(ro)
+    assert (adv.action[:, :, 1] == 0).all() and adv.action[:, :, 0].abs().sum() >= 0
+    other = ro._replace(actions=ro.actions.clone(), logp_action=ro.logp_action.clone())
+    other.actions[:, :, 1] = 1 - other.actions[:, :, 1]
+    other.logp_action[:, :, 1] -= 3.0
+    a, b = _grads(learner, ro, adv), _grads(learner, other, adv)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    # the same change to the listener when it is not fixed does move the gradient
+    free, ro2 = _batch(config())
+    adv2 = free.advantages(ro2)
+    other2 = ro2._replace(actions=ro2.actions.clone())
+    other2.actions[:, :, 1] = 1 - other2.actions[:, :, 1]
+    a2, b2 = _grads(free, ro2, adv2), _grads(free, other2, adv2)
+    assert not torch.equal(a2["action_out.weight"], b2["action_out.weight"])
+
+
+# ---------------------------------------------------------------------------------------------- runs
+def test_resume_gives_the_uninterrupted_run(tmp_path: Path) -> None:
+    cfg = config(episodes=32)
+    whole = train_env(cfg, tmp_path / "whole", progress=False)
+    train_env(dataclasses.replace(cfg, episodes=16), tmp_path / "split", progress=False)
+    split = train_env(cfg, tmp_path / "split", resume=True, progress=False)
+    from safetensors.torch import load_file
+
+    wa, wb = load_file(str(whole)), load_file(str(split))
+    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+    rows = [(tmp_path / r / "metrics.csv").read_text().splitlines() for r in ("whole", "split")]
+    strip = [[",".join(x for i, x in enumerate(line.split(",")) if i != 3) for line in r] for r in rows]  # wall_s
+    assert strip[0] == strip[1] and len(strip[0]) == 5
+
+
+@pytest.mark.parametrize(
+    ("flags", "names"),
+    [
+        (["--env", "no_such_module_xyz:make"], "cannot be imported"),
+        (["--env", f"{__name__}:NoSuchFactory"], "no callable 'NoSuchFactory'"),
+        (["--env", "json:JSONDecoder"], "not a PettingZoo ParallelEnv"),
+        (["--env", SPEC, "--env-kwargs", "{bad"], "--env-kwargs"),
+        (["--env", SPEC, "--env-kwargs", '{"nope": 1}'], "env_kwargs"),
+        (["--env", SPEC, "--topology", "star"], "--topology"),
+        (["--env", SPEC, "--fixed-actions", "[1]"], "--fixed-actions"),
+        (["--topology", "ring"], "only with --env"),
+        (["--env", SPEC, "--goal-coef", "1"], "not used with --env"),
+    ],
+)
+def test_cli_errors_are_one_line(
+    flags: list[str], names: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(["train", *flags, "--out", str(tmp_path / "run"), "--quiet", "--eval-episodes", "0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and names in err[0], err
+
+
+def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = str(tmp_path / "run")
+    argv = ["train", "--env", SPEC, "--bits", "2", "--num-envs", "8", "--episodes", "8", "--hidden", "16"]
+    assert main([*argv, "--out", out, "--quiet", "--eval-episodes", "0", "--threads", "1"]) == 0
+    assert main(["eval", out, "--episodes", "20", "--drop-prob", "1", "--json"]) == 0
+    assert '"mean_team_return"' in capsys.readouterr().out
+    assert main(["eval", out, "--size", "5"]) == 2  # a grid flag on a wrapped-env run
+    assert main(["train", "--resume", "--out", out, "--episodes", "16", "--quiet", "--eval-episodes", "0"]) == 0
+    checkpoint = str(Path(out) / "checkpoints" / "ckpt_000000016.safetensors")
+    assert main(["eval", checkpoint, "--episodes", "10"]) == 0
+    assert "10 episodes, mean team return" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------------------------------- learning
+def test_improved_bitwise_learns_to_use_the_channel(tmp_path: Path) -> None:
+    """The listener can earn 1 per episode only by reading the speaker's message; with every message dropped
+    it is right half the time. Improved + bitwise beats the same learner with the channel cut."""
+    torch.set_num_threads(1)
+    result = {}
+    for drop in (0.0, 1.0):
+        cfg = config(num_envs=64, episodes=64 * 40, hidden=(32, 32), lr=3e-3, channel={"bits": 2, "drop_prob": drop})
+        path = train_env(cfg, tmp_path / f"drop{drop}", progress=False)
+        result[drop] = evaluate_env(path, 512, seed=7).mean_team_return
+    assert result[0.0] > 0.9 and result[1.0] < 0.7, result
+
+
+def test_running_norm_matches_the_pooled_statistics() -> None:
+    from bitcomm.policies.mlp import RunningNorm
+
+    norm = RunningNorm((2, 3), enabled=True)
+    x = torch.randn(5, 4, 2, 3, generator=torch.Generator().manual_seed(0)) * 3 + 1
+    mask = torch.rand(5, 4, 2, generator=torch.Generator().manual_seed(1)) < 0.7
+    norm.update(x[:2], mask[:2])
+    norm.update(x[2:], mask[2:])
+    for i in range(2):  # each agent's statistics over the samples where it was present
+        kept = x[..., i, :][mask[..., i]]
+        torch.testing.assert_close(norm.mean[i], kept.mean(0))
+        torch.testing.assert_close(norm.var[i], kept.var(0, unbiased=False))
+    assert torch.equal(RunningNorm((3,), enabled=False)(x[0, 0, 0]), x[0, 0, 0])
