@@ -13,8 +13,8 @@ import argparse
 import os
 from pathlib import Path
 
-from bitcomm.commands.backend_flags import add_backend_flags, execution
 from bitcomm.commands import env_train
+from bitcomm.commands.backend_flags import add_backend_flags, execution
 from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.env_flags import add_env_flags
 from bitcomm.commands.flags import MAX_EVAL_EPISODES, MAX_JOBS, MAX_TRAIN_EPISODES, SEED, check_train, integer, out_dir
