@@ -21,6 +21,10 @@ actor starts its next batch once the learner has updated on its last, so its cyc
 
     python benchmarks/ray_scaling.py [--size 4] [--bits 4] [--episodes 4096] [--repeats 2] [--actors 1,2,4]
         [--single-pass]
+
+`--stale-check` instead trains the recipe's learner in this process, without Ray, for `--stale-updates`
+updates on batches played with the current weights, with the weights one update old, and one update old
+without PPO clipping, and prints the mean episode length of every 8 updates: what staleness alone does.
 """
 
 from __future__ import annotations
@@ -83,6 +87,34 @@ def measure(name: str, seed: int, args: argparse.Namespace, **options: Any) -> d
     return out
 
 
+def stale_check(args: argparse.Namespace) -> dict[str, list[float]]:
+    """Mean training episode length per 8 updates when every batch is played with weights `stale` updates old."""
+    import copy
+
+    import numpy as np
+
+    from bitcomm.learn.learner import Learner
+    from bitcomm.learn.rollout import Collector
+
+    task = TaskConfig(EnvConfig(size=args.size), ChannelConfig(bits=args.bits))
+    out = {}
+    for name, stale, options in (("fresh", 0, {}), ("1 update old", 1, {}), ("1 update old, clip 0", 1, {"clip": 0.0})):
+        cfg = make_train_config(args.recipe, task, **options)
+        torch.manual_seed(0)
+        learner, generator = Learner(cfg), torch.Generator().manual_seed(0)
+        collector = Collector(cfg.training_task, cfg.num_envs)
+        history, lengths = [copy.deepcopy(learner.policy)], []
+        for k in range(args.stale_updates):
+            behaviour = history[max(0, len(history) - 1 - stale)]
+            ro = collector.collect(behaviour, np.random.SeedSequence(0, spawn_key=(k,)), generator)
+            lengths.append(float(ro.length.mean()))
+            learner.update(ro, generator)
+            history = [*history[-1:], copy.deepcopy(learner.policy)]
+        out[name] = [round(float(np.mean(lengths[i : i + 8])), 2) for i in range(0, len(lengths), 8)]
+        print(f"  {name:22s} mean length per 8 updates: {out[name]}", flush=True)
+    return out
+
+
 def median(results: list[dict[str, Any]]) -> dict[str, Any]:
     """Each figure's median over the repeats (None if a repeat lacks it: a 2x never reached)."""
     keys = results[0].keys()
@@ -112,6 +144,8 @@ def main() -> None:
         action="store_true",
         help="one gradient step per batch (epochs=1, minibatches=1): a cheap learner",
     )
+    ap.add_argument("--stale-check", action="store_true", help="only train without Ray on stale batches (above)")
+    ap.add_argument("--stale-updates", type=int, default=48, help="updates of --stale-check (default %(default)s)")
     ap.add_argument("--json", type=Path, default=None, help="also write the summary here")
     args = ap.parse_args()
     try:  # bad input is one line before anything runs
@@ -124,9 +158,13 @@ def main() -> None:
         make_train_config(args.recipe, TaskConfig(EnvConfig(size=args.size), ChannelConfig(bits=args.bits)))
     except (ConfigError, ValueError) as err:
         ap.error(str(err))
+    torch.set_num_threads(args.threads)
+    if args.stale_check:
+        summary = {"benchmark": "ray_scaling/stale_check", "recipe": args.recipe, "lengths": stale_check(args)}
+        print(json.dumps(summary))
+        return
     import ray
 
-    torch.set_num_threads(args.threads)
     ray.init(num_cpus=max(actors), include_dashboard=False, log_to_driver=False, configure_logging=False)
     base: dict[str, Any] = {"epochs": 1, "minibatches": 1} if args.single_pass else {}
     plans: list[tuple[str, dict[str, Any]]] = [("local sync", {})]
