@@ -36,6 +36,7 @@ from bitcomm.learn.run_folder import (
     Progress,
     checkpoint_weights,
     finite_or_stop,
+    learner_state,
     oracle_level,
     prepare,
     read_config_json,
@@ -200,9 +201,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
             weights = {k: {n_: t.clone() for n_, t in sd.items()} for k, sd in checkpoint_weights(learner).items()}
             state = {
                 **prog.state(),
-                "opt_policy": learner.opt_policy.state_dict(),
-                "opt_critic": learner.opt_critic.state_dict(),
-                "torch_rng": torch.get_rng_state(),
+                **learner_state(learner),
                 "next_batch": next_batch.value,
             }
             state = {k: _clone(v) for k, v in state.items()}
@@ -231,23 +230,9 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 done.add(msg[1])
                 continue
             _, _, length, team_return, success, stats = msg
-            prog.batches += 1
-            prog.episodes += len(length)
-            prog.agent_steps += int(length.sum()) * n
             prog.wall_s = wall0 + time.perf_counter() - t_start
-            prog.recent.extend(int(x) for x in length)
-            prog.recent_return.extend(float(x) for x in team_return)
-            row = {
-                "batch": prog.batches,
-                "episodes": prog.episodes,
-                "agent_steps": prog.agent_steps,
-                "wall_s": round(prog.wall_s, 3),
-                "charts/episode_length": float(length.mean()),
-                "charts/episode_length_rolling": float(np.mean(prog.recent)),
-                "charts/team_return": float(team_return.mean()),
-                "charts/success": float(success.mean()),
-                **stats,
-            }
+            row = prog.add_batch(length, team_return, int(length.sum()) * n)
+            row.update({"charts/success": float(success.mean()), **stats})
             finite_or_stop(out, learner, prog.episodes)
             logger.log(row)
             bar.update(min(len(length), max(0, bar.total - bar.n)))  # workers overshoot the budget: the bar stops at it

@@ -26,6 +26,7 @@ from bitcomm.learn.run_folder import (
     Logger,
     Progress,
     has_checkpoint,
+    learner_state,
     prepare,
     read_json_object,
     save_run_checkpoint,
@@ -73,10 +74,7 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
     def save() -> Path:
         state = {
             **prog.state(),
-            "opt_policy": learner.opt_policy.state_dict(),
-            "opt_critic": learner.opt_critic.state_dict(),
-            "generator": generator.get_state(),
-            "torch_rng": torch.get_rng_state(),
+            **learner_state(learner, generator),
         }
         return save_run_checkpoint(out, cfg, weights(), prog, state, metric="team_return")
 
@@ -94,22 +92,8 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
             learner.critic.state_norm.update(ro.state, ro.valid)
             refuse_nonfinite(out, prog.episodes + len(ro.length), **weights())
             prog.wall_s += time.perf_counter() - t0
-            prog.batches += 1
-            prog.episodes += len(ro.length)
-            prog.agent_steps += int(ro.alive.sum())
-            prog.recent.extend(int(x) for x in ro.length)
-            prog.recent_return.extend(float(x) for x in ro.team_return)
-            row = {
-                "batch": prog.batches,
-                "episodes": prog.episodes,
-                "agent_steps": prog.agent_steps,
-                "wall_s": round(prog.wall_s, 3),
-                "charts/episode_length": float(ro.length.mean()),
-                "charts/episode_length_rolling": float(np.mean(prog.recent)),
-                "charts/team_return": float(ro.team_return.mean()),
-                "charts/team_return_rolling": float(np.mean(prog.recent_return)),
-                **stats,
-            }
+            row = prog.add_batch(ro.length, ro.team_return, int(ro.alive.sum()))
+            row.update({"charts/team_return_rolling": float(np.mean(prog.recent_return)), **stats})
             logger.log(row)
             bar.update(len(ro.length))
             bar.set_postfix(ret=f"{row['charts/team_return_rolling']:.2f}")

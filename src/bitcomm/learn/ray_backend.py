@@ -41,6 +41,7 @@ from bitcomm.learn.run_folder import (
     Progress,
     checkpoint_weights,
     finite_or_stop,
+    learner_state,
     oracle_level,
     prepare,
     read_config_json,
@@ -249,10 +250,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
     def save() -> Path:
         state = {
             **prog.state(),
-            "opt_policy": learner.opt_policy.state_dict(),
-            "opt_critic": learner.opt_critic.state_dict(),
-            "generator": generator.get_state(),
-            "torch_rng": torch.get_rng_state(),
+            **learner_state(learner, generator),
             "next_batch": next_batch,
         }
         return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state)
@@ -272,27 +270,18 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
         weights = ray.put(_policy_weights(learner.policy))  # once per update, whatever the number of actors
         update_s = time.perf_counter() - t0
         prog.wall_s = wall0 + time.perf_counter() - t_start
-        prog.batches += len(batches)
-        prog.episodes += len(ro.length)
-        prog.agent_steps += int(ro.length.sum()) * n
-        prog.recent.extend(int(x) for x in ro.length)
-        prog.recent_return.extend(float(x) for x in ro.team_return)
-        row = {
-            "batch": prog.batches,
-            "episodes": prog.episodes,
-            "agent_steps": prog.agent_steps,
-            "wall_s": round(prog.wall_s, 3),
-            "charts/episode_length": float(ro.length.mean()),
-            "charts/episode_length_rolling": float(np.mean(prog.recent)),
-            "charts/team_return": float(ro.team_return.mean()),
-            "charts/success": float(ro.success.mean()),
-            **stats,
-            "ray/staleness": staleness,
-            "ray/dropped": dropped,
-            "ray/restarts": actors.restarts,
-            "ray/update_s": update_s,
-            "ray/collect_s": float(np.mean([b["collect_s"] for b in batches])),
-        }
+        row = prog.add_batch(ro.length, ro.team_return, int(ro.length.sum()) * n, batches=len(batches))
+        row.update(
+            {
+                "charts/success": float(ro.success.mean()),
+                **stats,
+                "ray/staleness": staleness,
+                "ray/dropped": dropped,
+                "ray/restarts": actors.restarts,
+                "ray/update_s": update_s,
+                "ray/collect_s": float(np.mean([b["collect_s"] for b in batches])),
+            }
+        )
         logger.log(row)
         bar.update(len(ro.length))
         bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")

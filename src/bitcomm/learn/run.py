@@ -30,6 +30,7 @@ from bitcomm.learn.run_folder import (
     checkpoint_weights,
     finite_or_stop,
     has_checkpoint,
+    learner_state,
     oracle_level,
     prepare,
     read_config_json,
@@ -90,10 +91,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
     def save() -> Path:
         state = {
             **prog.state(),
-            "opt_policy": learner.opt_policy.state_dict(),
-            "opt_critic": learner.opt_critic.state_dict(),
-            "generator": generator.get_state(),
-            "torch_rng": torch.get_rng_state(),
+            **learner_state(learner, generator),
         }
         return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state)
 
@@ -111,22 +109,8 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
             stats = learner.update(ro, generator, progress=prog.episodes / cfg.episodes)
             finite_or_stop(out, learner, prog.episodes + len(ro.length))
             prog.wall_s += time.perf_counter() - t0
-            prog.batches += 1
-            prog.episodes += len(ro.length)
-            prog.agent_steps += int(ro.length.sum()) * n
-            prog.recent.extend(int(x) for x in ro.length)
-            prog.recent_return.extend(float(x) for x in ro.team_return)
-            row = {
-                "batch": prog.batches,
-                "episodes": prog.episodes,
-                "agent_steps": prog.agent_steps,
-                "wall_s": round(prog.wall_s, 3),
-                "charts/episode_length": float(ro.length.mean()),
-                "charts/episode_length_rolling": float(np.mean(prog.recent)),
-                "charts/team_return": float(ro.team_return.mean()),
-                "charts/success": float(ro.success.mean()),
-                **stats,
-            }
+            row = prog.add_batch(ro.length, ro.team_return, int(ro.length.sum()) * n)
+            row.update({"charts/success": float(ro.success.mean()), **stats})
             logger.log(row)
             bar.update(len(ro.length))
             bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")

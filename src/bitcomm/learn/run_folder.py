@@ -228,6 +228,26 @@ class Progress:
         self.recent: deque[int] = deque(maxlen=ROLLING)
         self.recent_return: deque[float] = deque(maxlen=ROLLING)
 
+    def add_batch(
+        self, length: np.ndarray, team_return: np.ndarray, agent_steps: int, batches: int = 1
+    ) -> dict[str, Any]:
+        """Count a consumed batch of whole episodes; returns the figures every trainer logs first for it
+        (`wall_s` as the caller has set it), in metrics.csv's column order."""
+        self.batches += batches
+        self.episodes += len(length)
+        self.agent_steps += agent_steps
+        self.recent.extend(int(x) for x in length)
+        self.recent_return.extend(float(x) for x in team_return)
+        return {
+            "batch": self.batches,
+            "episodes": self.episodes,
+            "agent_steps": self.agent_steps,
+            "wall_s": round(self.wall_s, 3),
+            "charts/episode_length": float(np.mean(length)),
+            "charts/episode_length_rolling": float(np.mean(self.recent)),
+            "charts/team_return": float(np.mean(team_return)),
+        }
+
     def state(self) -> dict[str, Any]:
         return {
             "agent_steps": self.agent_steps,
@@ -241,6 +261,19 @@ class Progress:
         self.agent_steps, self.wall_s = int(state["agent_steps"]), float(state["wall_s"])
         self.recent.extend(int(x) for x in state["recent_lengths"].tolist())
         self.recent_return.extend(float(x) for x in state["recent_returns"].tolist())
+
+
+def learner_state(learner: Any, generator: torch.Generator | None = None) -> dict[str, Any]:
+    """What a checkpoint holds besides the weights and the counters so that a resumed run continues as if
+    never stopped: both optimizers' moments and the random streams (`generator`: the trainer's own, if any)."""
+    state: dict[str, Any] = {
+        "opt_policy": learner.opt_policy.state_dict(),
+        "opt_critic": learner.opt_critic.state_dict(),
+    }
+    if generator is not None:
+        state["generator"] = generator.get_state()
+    state["torch_rng"] = torch.get_rng_state()
+    return state
 
 
 def checkpoint_weights(learner: Any) -> dict[str, dict[str, torch.Tensor]]:
