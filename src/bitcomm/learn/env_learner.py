@@ -27,6 +27,7 @@ from bitcomm.envs.vector import EnvLayout
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_rollout import EnvRollout
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator, policy_gradient_loss
+from bitcomm.learn.learner import scaled
 from bitcomm.learn.objectives import clipped_policy_loss, critic_mse
 from bitcomm.policies.mlp import MlpCritic, MlpPolicy
 
@@ -105,7 +106,7 @@ class EnvLearner:
         mask_a, mask_m = self._masks(ro.alive)
         adv = adv._replace(action=torch.where(mask_a, adv.action, 0.0), message=torch.where(mask_m, adv.message, 0.0))
         if cfg.adv_norm:
-            adv = adv._replace(action=_scaled(adv.action, mask_a), message=_scaled(adv.message, mask_m))
+            adv = adv._replace(action=scaled(adv.action, mask_a), message=scaled(adv.message, mask_m))
         return adv
 
     def _masks(self, alive: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -173,9 +174,3 @@ def _step(opt: torch.optim.Optimizer, net: torch.nn.Module, loss: torch.Tensor, 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.where(mask, x, 0.0).sum() / mask.sum().clamp(min=1)
-
-
-def _scaled(a: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Divide by the standard deviation over the entries that count (unchanged when it is not finite)."""
-    std = a[mask].std()
-    return a / (std + 1e-8) if torch.isfinite(std) else a

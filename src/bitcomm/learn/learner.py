@@ -146,7 +146,7 @@ class Learner:
         batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
         adv = self.estimator(batch, self.cfg.gamma, self.cfg.task.channel.delay)
         if self.cfg.adv_norm:
-            adv = adv._replace(action=_scaled(adv.action, ro.valid), message=_scaled(adv.message, ro.valid))
+            adv = adv._replace(action=scaled(adv.action, ro.valid), message=scaled(adv.message, ro.valid))
         return adv
 
     def _forward(self, ro: Rollout, cols: torch.Tensor) -> _Forward:
@@ -221,6 +221,8 @@ class Learner:
         return scales
 
 
-def _scaled(a: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+def scaled(a: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """`a` divided by the standard deviation of its entries where `valid` (unchanged when that is not finite):
+    `adv_norm`, for the grid's learner and the wrapped-env learner alike."""
     std = a[valid].std()
     return a / (std + 1e-8) if torch.isfinite(std) else a
