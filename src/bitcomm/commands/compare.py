@@ -2,7 +2,8 @@
 
 Task flags and learning flags are those of `bitcomm train` and apply to every run; `--vary NAME=V1,V2`
 (repeatable) makes one configuration per technique and value. Running the same command again skips
-finished runs and resumes interrupted ones.
+finished runs and resumes interrupted ones. With `--env PACKAGE.MODULE:FACTORY` the study runs on that
+PettingZoo env wrapped in bitcomm's channel (`bitcomm.studies.env_compare`), with `bitcomm train --env`'s flags.
 """
 
 from __future__ import annotations
@@ -11,9 +12,14 @@ import argparse
 import json
 import os
 import sys
+import typing
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
+from bitcomm.commands import env_train
 from bitcomm.commands.common import add_task_flags, task_from_args
+from bitcomm.commands.env_flags import add_env_flags
 from bitcomm.commands.flags import (
     EVAL_EPISODES,
     MAX_JOBS,
@@ -27,13 +33,27 @@ from bitcomm.commands.flags import (
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
 from bitcomm.errors import bad_value
 from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
-from bitcomm.studies.compare import CHOICES, STUDY_EPISODES, CompareConfig, parse_techniques, parse_vary, run_compare
+
+if TYPE_CHECKING:
+    from bitcomm.learn.config import TrainConfig
+from bitcomm.studies.compare import (
+    CHOICES,
+    ENV_STUDY_SEEDS,
+    GRID_STUDY_SEEDS,
+    STUDY_EPISODES,
+    CompareConfig,
+    parse_techniques,
+    parse_vary,
+    run_compare,
+)
 
 MAX_SEEDS = 1000
 """Seeds per configuration: 1000 runs of each is already months of CPU (and keeps --eval-seed's default free)."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
+    from bitcomm.policies.source import mark_task_defaults
+
     p = sub.add_parser(
         "compare",
         help="train the four techniques and a no-communication baseline over seeds: curves, table, summary",
@@ -49,16 +69,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help=f"a subset of {', '.join(CHOICES)} (default: all)",
     )
     p.add_argument(
-        "--recipe", choices=tuple(RECIPES), default=DEFAULT_RECIPE, help="learning options (default %(default)s)"
+        "--recipe", choices=tuple(RECIPES), default=None, help=f"learning options (default {DEFAULT_RECIPE}; grid only)"
     )
     p.add_argument(
-        "--seeds", type=integer(1, MAX_SEEDS), default=5, help="seeds 0..S-1 per configuration (default %(default)s)"
+        "--seeds",
+        type=integer(1, MAX_SEEDS),
+        default=None,
+        help=f"seeds 0..S-1 per configuration (default {GRID_STUDY_SEEDS}; with --env {ENV_STUDY_SEEDS})",
     )
     p.add_argument(
         "--episodes",
         type=integer(1, MAX_TRAIN_EPISODES),
-        default=STUDY_EPISODES,
-        help="budget of every run (default %(default)s)",
+        default=None,
+        help=f"budget of every run (default {STUDY_EPISODES}; with --env, that of bitcomm train --env)",
     )
     p.add_argument(
         "--jobs", type=integer(1, MAX_JOBS), default=None, help="processes at once (default: the core count)"
@@ -84,6 +107,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print summary.json instead of the table")
     add_learning_flags(p)
     add_task_flags(p)
+    add_env_flags(p)
+    mark_task_defaults(p)  # a grid-only flag typed with --env is refused
     p.set_defaults(run=run)
 
 
@@ -94,32 +119,58 @@ def check_study(cfg: CompareConfig) -> None:
 
     runs = plan(cfg)
     for r in runs:
-        check_train(r.train, processes=min(cfg.jobs, len(runs)))
-        check_eval(r.train.task, cfg.eval_episodes)
+        train = typing.cast("TrainConfig", r.train)  # a grid study's runs are on the grid
+        check_train(train, processes=min(cfg.jobs, len(runs)))
+        check_eval(train.task, cfg.eval_episodes)
 
 
-def run(args: argparse.Namespace) -> int:
+def _common(args: argparse.Namespace) -> dict[str, Any]:
+    """The study options every study has."""
+    return {
+        "out": args.out,
+        "techniques": parse_techniques(args.techniques) if args.techniques is not None else CHOICES,
+        "jobs": args.jobs if args.jobs is not None else os.cpu_count() or 1,
+        "eval_episodes": args.eval_episodes,
+        "eval_seed": args.eval_seed,
+    }
+
+
+def grid_study(args: argparse.Namespace) -> tuple[Callable[..., dict[str, Any]], Callable[..., str], Any]:
     from bitcomm.studies.compare import table_markdown
 
+    env_train.check_env_only(args)
     vary = dict(parse_vary(text) for text in args.vary)
     if len(vary) != len(args.vary):
         raise bad_value("vary", args.vary, "each NAME at most once")
     cfg = CompareConfig(
-        out=args.out,
-        techniques=parse_techniques(args.techniques) if args.techniques is not None else CHOICES,
-        recipe=args.recipe,
-        seeds=args.seeds,
-        episodes=args.episodes,
-        jobs=args.jobs if args.jobs is not None else os.cpu_count() or 1,
-        eval_episodes=args.eval_episodes,
-        eval_seed=args.eval_seed,
+        **_common(args),
+        recipe=args.recipe or DEFAULT_RECIPE,
+        seeds=args.seeds or GRID_STUDY_SEEDS,
+        episodes=args.episodes or STUDY_EPISODES,
         task=task_from_args(args),
         learning=learning_overrides(args),
         vary=vary,
     )
     check_study(cfg)
+    return run_compare, table_markdown, cfg
+
+
+def env_study(args: argparse.Namespace) -> tuple[Callable[..., dict[str, Any]], Callable[..., str], Any]:
+    """The study on a wrapped env; the grid's --recipe and --vary do not apply (one line each)."""
+    from bitcomm.studies.env_compare import EnvCompareConfig, run_env_compare, table_markdown
+
+    for name in ("recipe", "vary"):
+        if getattr(args, name):
+            raise bad_value(name, getattr(args, name), "a grid option, not used with --env")
+    base = env_train.env_config_from_args(args)
+    cfg = EnvCompareConfig(base=base, **_common(args), seeds=args.seeds or ENV_STUDY_SEEDS)
+    return run_env_compare, table_markdown, cfg
+
+
+def run(args: argparse.Namespace) -> int:
+    study, table_markdown, cfg = env_study(args) if args.env is not None else grid_study(args)
     progress = sys.stderr if args.json else sys.stdout
-    summary = run_compare(cfg, log=lambda line: print(line, file=progress, flush=True))
+    summary = study(cfg, log=lambda line: print(line, file=progress, flush=True))
     if args.json:
         json.dump(summary, sys.stdout)
         sys.stdout.write("\n")

@@ -6,11 +6,14 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from bitcomm.commands.env_flags import ENV_ONLY
 from bitcomm.commands.learning_flags import learning_overrides
 from bitcomm.errors import bad_value
+
+if TYPE_CHECKING:
+    from bitcomm.learn.env_config import EnvTrainConfig
 
 RENAMED = {"entropy_move": "entropy_action"}
 """Learning flags whose field has another name in `EnvTrainConfig` (the env's own actions are not moves)."""
@@ -45,11 +48,38 @@ def env_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+GRID_ONLY = ("size", "agents", "max_steps", "observes", "act_fail_prob", "act_delay", "recipients")
+"""Task flags of the grid that a wrapped env has no use for (the channel's --bits --delay --flip-prob
+--drop-prob apply; who hears whom is --topology)."""
+
+
+def env_config_from_args(args: argparse.Namespace) -> EnvTrainConfig:
+    """The `EnvTrainConfig` the flags describe; estimator, message head and seed are the config's defaults
+    where the command has no such flag (`bitcomm compare` sets them per run). A grid-only task flag typed
+    with --env is one line (the parser must have been through `mark_task_defaults`)."""
+    from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
+    from bitcomm.policies.source import given_task_flags
+
+    given = given_task_flags(args)
+    for name in GRID_ONLY:
+        if name in given:
+            raise bad_value(name.replace("_", "-"), given[name], "a grid option, not used with --env")
+    channel = EnvChannelConfig(
+        bits=int(args.bits), delay=int(args.delay), flip_prob=float(args.flip_prob), drop_prob=float(args.drop_prob),
+        topology=args.topology if args.topology is not None else "all", fixed_actions=args.fixed_actions,
+    )  # fmt: skip
+    extra: dict[str, Any] = {}
+    for name in ("episodes", "obs_norm", "estimator", "messages", "seed"):
+        if getattr(args, name, None) is not None:
+            extra[name] = getattr(args, name)
+    return EnvTrainConfig(env=args.env, env_kwargs=args.env_kwargs or {}, channel=channel, **extra,
+                          **env_overrides(args))  # fmt: skip
+
+
 def train(args: argparse.Namespace, threads: int | None) -> int:
     """Train on the env of `--env` (or resume such a run); `threads`: torch threads (None: OMP_NUM_THREADS)."""
     import torch
 
-    from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
     from bitcomm.learn.env_eval import evaluate_env
     from bitcomm.learn.env_run import resume_env_config, train_env
 
@@ -60,17 +90,7 @@ def train(args: argparse.Namespace, threads: int | None) -> int:
             raise bad_value("resume", True, "give the run folder with --out")
         cfg = resume_env_config(args.out, args.episodes)
     else:
-        channel = EnvChannelConfig(
-            bits=args.bits, delay=args.delay, flip_prob=args.flip_prob, drop_prob=args.drop_prob,
-            topology=args.topology if args.topology is not None else "all", fixed_actions=args.fixed_actions,
-        )  # fmt: skip
-        extra: dict[str, Any] = {"episodes": args.episodes} if args.episodes is not None else {}
-        if args.obs_norm is not None:
-            extra["obs_norm"] = args.obs_norm
-        cfg = EnvTrainConfig(
-            env=args.env, env_kwargs=args.env_kwargs or {}, channel=channel, estimator=args.estimator,
-            messages=args.messages, seed=args.seed, **extra, **env_overrides(args),
-        )  # fmt: skip
+        cfg = env_config_from_args(args)
     module = cfg.env.partition(":")[0].rpartition(".")[2]
     out = args.out or Path("runs") / f"env-{module}-{cfg.estimator}-{cfg.messages}-s{cfg.seed}"
     if threads is not None:

@@ -23,6 +23,8 @@ from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
+    from bitcomm.policies.source import mark_task_defaults
+
     p = sub.add_parser("train", help="train agents to act and communicate")
     p.add_argument("--estimator", choices=("standard", "improved"), default="improved", help="default %(default)s")
     p.add_argument("--messages", choices=("bitwise", "onehot"), default="bitwise", help="default %(default)s")
@@ -59,6 +61,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_backend_flags(p)
     add_task_flags(p)
     add_env_flags(p)
+    mark_task_defaults(p)  # a grid-only flag typed with --env is refused
     p.set_defaults(run=run)
 
 

@@ -46,7 +46,9 @@ from bitcomm.studies.stats import mean_interval
 
 if TYPE_CHECKING:
     from bitcomm.learn.config import TrainConfig
+    from bitcomm.learn.env_config import EnvTrainConfig
     from bitcomm.policies.evaluation import EvalResult
+    from bitcomm.studies.env_compare import EnvCompareConfig
 
 TECHNIQUES: dict[str, tuple[str, str]] = {
     "standard-onehot": ("standard", "onehot"),
@@ -71,6 +73,12 @@ STUDY_EPISODES = 60_000
 """The default budget of every run: on the default task, improved + bitwise under `reinforced` is below
 2x the oracle after 27,000-39,000 episodes and its rolling mean near 1.25x after 60,000 (docs/tuning.md, session 8), so
 the techniques separate within it; a run takes about 5 minutes on one core."""
+
+
+GRID_STUDY_SEEDS = 5
+ENV_STUDY_SEEDS = 3
+"""Default seeds per configuration: on the grid, and on a wrapped env (`bitcomm.studies.env_compare`), whose runs
+are longer."""
 
 
 def _task_options() -> dict[str, tuple[str, str, Option]]:
@@ -114,7 +122,7 @@ def parse_techniques(text: str) -> tuple[str, ...]:
     return names
 
 
-def _plural(n: int, one: str, many: str) -> str:
+def plural(n: int, one: str, many: str) -> str:
     return f"{n} {one if n == 1 else many}"
 
 
@@ -137,7 +145,7 @@ class CompareConfig:
     out: Path = Path("runs/compare")
     techniques: tuple[str, ...] = CHOICES
     recipe: str = DEFAULT_RECIPE
-    seeds: int = 5
+    seeds: int = GRID_STUDY_SEEDS
     """Seeds 0 .. seeds-1 of every configuration."""
     episodes: int = STUDY_EPISODES
     """The budget of every run."""
@@ -153,15 +161,21 @@ class CompareConfig:
     """Option name -> values; configurations are techniques x the product of these."""
 
     def __post_init__(self) -> None:
-        if not self.techniques or any(t not in CHOICES for t in self.techniques):
-            raise bad_value("techniques", self.techniques, f"choose from {', '.join(CHOICES)}")
-        for name in ("seeds", "jobs", "eval_episodes", "episodes"):
-            check_int(name, getattr(self, name), 1)
-        if 0 <= self.eval_seed < self.seeds:
-            raise bad_value("eval-seed", self.eval_seed, f"must not be a training seed (0..{self.seeds - 1})")
+        check_study_fields(self)
+        check_int("episodes", self.episodes, 1)
         unknown = set(self.vary) - set(varied_options())
         if unknown:
             raise bad_value("vary", sorted(unknown)[0], "not a learning or task option")
+
+
+def check_study_fields(cfg: CompareConfig | EnvCompareConfig) -> None:
+    """What every study must hold: known techniques, counts >= 1, an evaluation seed that trains no run."""
+    if not cfg.techniques or any(t not in CHOICES for t in cfg.techniques):
+        raise bad_value("techniques", cfg.techniques, f"choose from {', '.join(CHOICES)}")
+    for name in ("seeds", "jobs", "eval_episodes"):
+        check_int(name, getattr(cfg, name), 1)
+    if 0 <= cfg.eval_seed < cfg.seeds:
+        raise bad_value("eval-seed", cfg.eval_seed, f"must not be a training seed (0..{cfg.seeds - 1})")
 
 
 class Configuration(NamedTuple):
@@ -188,10 +202,17 @@ class Configuration(NamedTuple):
         return self.name.replace(" ", "_")
 
 
+Describe = Callable[[Any, str, Any], str]
+"""(run, the status it was found in, the study's config) -> the progress line logged when it is finished."""
+
+
 class Run(NamedTuple):
+    """One run of a study: on the grid (`TrainConfig`) or on a wrapped PettingZoo env (`EnvTrainConfig`,
+    `bitcomm.studies.env_compare`)."""
+
     configuration: Configuration
     seed: int
-    train: TrainConfig
+    train: TrainConfig | EnvTrainConfig
     folder: Path
 
 
@@ -240,7 +261,7 @@ def _latest(folder: Path) -> dict[str, Any]:
     return read_latest(folder / CHECKPOINTS)
 
 
-def _write_atomic(path: Path, text: str) -> None:
+def write_atomic(path: Path, text: str) -> None:
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     tmp.write_text(text)
     tmp.replace(path)
@@ -254,7 +275,7 @@ def run_status(run: Run) -> str:
     latest = run.folder / CHECKPOINTS / LATEST
     if not latest.is_file():
         return "new"
-    recorded, wanted = _flat(_recorded_config(run.folder).to_dict()), _flat(run.train.to_dict())
+    recorded, wanted = _flat(_recorded_config(run.folder, type(run.train)).to_dict()), _flat(run.train.to_dict())
     differs = [k for k in wanted if k not in RESUMABLE and recorded.get(k) != wanted[k]]
     if differs:
         raise bad_value("out", str(run.folder), f"it holds a run with other {', '.join(differs)}; use another --out")
@@ -266,13 +287,13 @@ def run_status(run: Run) -> str:
     return "done"
 
 
-def _recorded_config(folder: Path) -> TrainConfig:
-    """The TrainConfig in a run's config.json; fields added since it was written take their defaults."""
-    from bitcomm.learn.config import TrainConfig
+def _recorded_config(folder: Path, kind: type[Any]) -> Any:
+    """The config (a `kind`: TrainConfig or EnvTrainConfig) in a run's config.json; fields added since it was
+    written take their defaults."""
     from bitcomm.learn.run_folder import read_json_object
 
-    names = {f.name for f in dataclasses.fields(TrainConfig)}
-    return TrainConfig.from_dict({k: v for k, v in read_json_object(folder / "config.json").items() if k in names})
+    names = {f.name for f in dataclasses.fields(kind)}
+    return kind.from_dict({k: v for k, v in read_json_object(folder / "config.json").items() if k in names})
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -297,19 +318,30 @@ def read_evaluation(run: Run, episodes: int, seed: int) -> dict[str, Any] | None
 
 
 def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
-    """Sampled and greedy play of the latest checkpoint on its own task, written to evaluation.json."""
+    """Sampled and greedy play of the latest checkpoint on its own task, written to evaluation.json; a run on a
+    wrapped env is also played with its channel cut (`cut`: every message dropped), the control that shows
+    whether what it learned is communication."""
+    from bitcomm.learn.env_config import EnvTrainConfig
+    from bitcomm.learn.env_eval import evaluate_env
     from bitcomm.policies.evaluation import evaluate_checkpoint
 
+    plays: dict[str, Callable[[], Any]] = {
+        "sampled": lambda: evaluate_checkpoint(run.folder, episodes, seed),
+        "greedy": lambda: evaluate_checkpoint(run.folder, episodes, seed, greedy=True),
+    }
+    if isinstance(run.train, EnvTrainConfig):
+        plays = {
+            "sampled": lambda: evaluate_env(run.folder, episodes, seed),
+            "greedy": lambda: evaluate_env(run.folder, episodes, seed, greedy=True),
+            "cut": lambda: evaluate_env(run.folder, episodes, seed, drop_prob=1.0),
+        }
     record = {
         "checkpoint": _latest(run.folder)["checkpoint"],
         "episodes": episodes,
         "seed": seed,
-        **{
-            play: evaluate_checkpoint(run.folder, episodes, seed, greedy=play == "greedy").to_dict()
-            for play in ("sampled", "greedy")
-        },
+        **{play: measure().to_dict() for play, measure in plays.items()},
     }
-    _write_atomic(run.folder / EVALUATION, json.dumps(record, indent=2) + "\n")
+    write_atomic(run.folder / EVALUATION, json.dumps(record, indent=2) + "\n")
     return record
 
 
@@ -322,6 +354,8 @@ def _init_worker() -> None:
 def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
     """Train (or resume) one run to its budget and evaluate it, holding the run folder's lock (one writer
     at a time, see `bitcomm.run_lock`); returns the status it was found in."""
+    from bitcomm.learn.env_config import EnvTrainConfig
+    from bitcomm.learn.env_run import train_env
     from bitcomm.learn.run import train
     from bitcomm.run_lock import run_lock
 
@@ -332,25 +366,36 @@ def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
     with run_lock(run.folder):
         status = run_status(run)
         if status != "done":
-            train(run.train, run.folder, resume=status == "resume", progress=False)
+            if isinstance(run.train, EnvTrainConfig):
+                train_env(run.train, run.folder, resume=status == "resume", progress=False)
+            else:
+                train(run.train, run.folder, resume=status == "resume", progress=False)
         if read_evaluation(run, eval_episodes, eval_seed) is None:
             evaluate_run(run, eval_episodes, eval_seed)
     return status
 
 
-def execute_all(runs: list[Run], cfg: CompareConfig, log: Callable[[str], None]) -> None:
-    """Every run that is not finished and evaluated, on up to `cfg.jobs` processes."""
+def _processes_of(run: Run) -> int:
+    """An a3c run counts as its workers."""
+    return int(getattr(run.train, "workers", 1)) if getattr(run.train, "mode", "sync") == "a3c" else 1
+
+
+def execute_all(
+    runs: list[Run], cfg: CompareConfig | EnvCompareConfig, log: Callable[[str], None], describe: Describe
+) -> None:
+    """Every run that is not finished and evaluated, on up to `cfg.jobs` processes; `describe` gives the line
+    logged for each."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     todo = [r for r in runs if run_status(r) != "done" or read_evaluation(r, cfg.eval_episodes, cfg.eval_seed) is None]
-    per_run = max((r.train.workers if r.train.mode == "a3c" else 1 for r in todo), default=1)
+    per_run = max((_processes_of(r) for r in todo), default=1)
     processes = max(1, min(len(todo), cfg.jobs // per_run))
     if not todo:
-        log(f"{_plural(len(runs), 'run', 'runs')}, all finished and evaluated")
+        log(f"{plural(len(runs), 'run', 'runs')}, all finished and evaluated")
         return
-    workers = _plural(processes, "process", "processes")
-    log(f"{_plural(len(runs), 'run', 'runs')}, {len(runs) - len(todo)} finished; {len(todo)} to go on {workers}")
+    workers = plural(processes, "process", "processes")
+    log(f"{plural(len(runs), 'run', 'runs')}, {len(runs) - len(todo)} finished; {len(todo)} to go on {workers}")
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker) as pool:
         futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
@@ -363,11 +408,15 @@ def execute_all(runs: list[Run], cfg: CompareConfig, log: Callable[[str], None])
             raise
 
 
+VERBS = {"new": "trained", "resume": "resumed", "done": "evaluated"}
+"""What happened to a run, by the status it was found in."""
+
+
 def describe(run: Run, status: str, cfg: CompareConfig) -> str:
     """One progress line for a finished run."""
     curve = read_curve(run.folder)
     evaluation = read_evaluation(run, cfg.eval_episodes, cfg.eval_seed) or {}
-    verb = {"new": "trained", "resume": "resumed", "done": "evaluated"}[status]
+    verb = VERBS[status]
     sampled = evaluation.get("sampled", {}).get("mean_episode_length", math.nan)
     return (
         f"{run.configuration.name} seed {run.seed}: {verb} to {int(curve.episodes[-1])} episodes in "
@@ -387,13 +436,22 @@ class Curve(NamedTuple):
     team_return: np.ndarray
 
 
-def read_curve(folder: Path) -> Curve:
+CURVE_COLUMNS = ("episode_length_rolling", "episode_length", "team_return")
+"""The `charts/` columns of metrics.csv a `Curve` holds after episodes and wall_s (and curves.csv's names)."""
+
+
+def read_columns(folder: Path, charts: tuple[str, ...]) -> list[np.ndarray]:
+    """episodes, wall_s and the given `charts/` columns of a run's metrics.csv, as arrays."""
     with (folder / "metrics.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
     if not rows:
         raise ConfigError(f"invalid run={str(folder)!r}: metrics.csv has no rows")
-    keys = ("episodes", "wall_s", "charts/episode_length_rolling", "charts/episode_length", "charts/team_return")
-    return Curve(*(np.array([float(r[k]) for r in rows]) for k in keys))
+    keys = ("episodes", "wall_s", *(f"charts/{c}" for c in charts))
+    return [np.array([float(r[k]) for r in rows]) for k in keys]
+
+
+def read_curve(folder: Path) -> Curve:
+    return Curve(*read_columns(folder, CURVE_COLUMNS))
 
 
 def first_below(curve: Curve, level: float) -> dict[str, float] | None:
@@ -404,10 +462,11 @@ def first_below(curve: Curve, level: float) -> dict[str, float] | None:
     return {"episodes": int(curve.episodes[below[0]]), "wall_s": float(curve.wall_s[below[0]])}
 
 
-def rolling_at(curve: Curve, wall_s: float) -> float:
-    """The rolling mean episode length of the last row logged at or before `wall_s` seconds of training."""
+def rolling_at(curve: Any, wall_s: float, field: str = "length_rolling") -> float:
+    """The curve's `field` (default: the rolling mean episode length) at the last row logged at or before
+    `wall_s` seconds of training."""
     rows = np.flatnonzero(curve.wall_s <= wall_s)
-    return float(curve.length_rolling[rows[-1] if rows.size else 0])
+    return float(getattr(curve, field)[rows[-1] if rows.size else 0])
 
 
 def interval(values: list[float]) -> dict[str, Any] | None:
@@ -514,11 +573,16 @@ def summarize(
 
 
 # ---------------------------------------------------------------------------------------------- files
-def write_curves_csv(runs: list[Run], curves: dict[Path, Curve], cfg: CompareConfig, path: Path) -> None:
-    """Every run's curve, at most CSV_POINTS rows each, with the configuration's varied values as columns."""
-    varied = list(cfg.vary)
-    columns = ["configuration", "technique", *varied, "seed", "episodes", "wall_s", "episode_length_rolling",
-               "episode_length", "team_return"]  # fmt: skip
+def write_curves_csv(
+    runs: list[Run],
+    curves: dict[Path, Any],
+    varied: list[str],
+    path: Path,
+    curve_columns: tuple[str, ...] = CURVE_COLUMNS,
+) -> None:
+    """Every run's curve (a NamedTuple: episodes, wall_s, then `curve_columns`), at most CSV_POINTS rows each,
+    with the configuration's `varied` values as columns."""
+    columns = ["configuration", "technique", *varied, "seed", "episodes", "wall_s", *curve_columns]
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     with tmp.open("w", newline="") as f:
         writer = csv.writer(f)
@@ -535,11 +599,12 @@ def write_curves_csv(runs: list[Run], curves: dict[Path, Curve], cfg: CompareCon
     tmp.replace(path)
 
 
-def _on_grid(curves: list[Curve]) -> tuple[np.ndarray, np.ndarray]:
-    """The seeds' rolling mean episode lengths interpolated onto episodes every seed has reached."""
+def on_grid(curves: list[Any], field: str = "length_rolling") -> tuple[np.ndarray, np.ndarray]:
+    """The seeds' curves' `field` (default: the rolling mean episode length) interpolated onto episodes every
+    seed has reached."""
     lo, hi = max(c.episodes[0] for c in curves), min(c.episodes[-1] for c in curves)
     grid = np.linspace(lo, hi, GRID_POINTS) if hi > lo else np.array([hi])
-    return grid, np.stack([np.interp(grid, c.episodes, c.length_rolling) for c in curves])
+    return grid, np.stack([np.interp(grid, c.episodes, getattr(c, field)) for c in curves])
 
 
 def plot_curves(
@@ -558,7 +623,7 @@ def plot_curves(
     for ax, (variant, task_variant) in zip(axes, panels.items(), strict=False):
         for conf in dict.fromkeys(r.configuration for r in runs if r.configuration.variant == variant):
             seeds = [curves[r.folder] for r in runs if r.configuration == conf]
-            grid, lengths = _on_grid(seeds)
+            grid, lengths = on_grid(seeds)
             mean, lo, hi = mean_interval(lengths)
             color = f"C{CHOICES.index(conf.technique)}"
             ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({len(seeds)} seeds)")
@@ -587,7 +652,7 @@ def plot_curves(
     save_figure(fig, path)
 
 
-def _cell(value: dict[str, Any] | None, fmt: str) -> str:
+def cell(value: dict[str, Any] | None, fmt: str) -> str:
     if value is None:
         return "—"
     lo, hi = value["ci95"]
@@ -599,7 +664,7 @@ def _reached_cell(reached: dict[str, Any] | None, what: str, fmt: str) -> str:
         return "no oracle"
     if not reached["seeds"]:
         return f"not reached (0/{reached['of']})"
-    return f"{_cell(reached[what], fmt)} ({reached['seeds']}/{reached['of']})"
+    return f"{cell(reached[what], fmt)} ({reached['seeds']}/{reached['of']})"
 
 
 def table_markdown(summary: dict[str, Any]) -> str:
@@ -611,7 +676,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
               *(f"episodes to {k} oracle" for k in keys), *(f"seconds to {k} oracle" for k in keys),
               "seconds per run", f"rolling length after {study['equal_wall_s']:,.0f} s"]  # fmt: skip
     lines = [
-        f"# bitcomm compare: {study['recipe']} recipe, {_plural(study['seeds'], 'seed', 'seeds')} x "
+        f"# bitcomm compare: {study['recipe']} recipe, {plural(study['seeds'], 'seed', 'seeds')} x "
         f"{study['episodes']:,} episodes",
         "",
         f"Task: {env['size']}x{env['size']} grid, {env['n_agents']} agents, K = {channel['bits']} bits, delay "
@@ -633,10 +698,10 @@ def table_markdown(summary: dict[str, Any]) -> str:
         reached = [c["reached"][k] if c["reached"] is not None else None for k in keys]
         cells = [c["name"]]
         for play in ("sampled", "greedy"):
-            cells += [_cell(c[play]["mean_episode_length"], ".2f"), _cell(c[play]["mean_team_return"], ".2f")]
+            cells += [cell(c[play]["mean_episode_length"], ".2f"), cell(c[play]["mean_team_return"], ".2f")]
         for what, fmt in (("episodes", ",.0f"), ("wall_s", ",.1f")):
             cells += [_reached_cell(r, what, fmt) for r in reached]
-        cells += [_cell(c["wall_s"], ",.1f"), _cell(c["rolling_at_equal_wall"], ".2f")]
+        cells += [cell(c["wall_s"], ",.1f"), cell(c["rolling_at_equal_wall"], ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -647,11 +712,11 @@ def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[
     cfg.out.mkdir(parents=True, exist_ok=True)
     tasks = {r.configuration.task_variant: variant_task(cfg, r.configuration.values) for r in runs}
     oracle = {variant: oracle_result(task, cfg.eval_episodes, cfg.eval_seed) for variant, task in tasks.items()}
-    execute_all(runs, cfg, log)
+    execute_all(runs, cfg, log, describe)
     curves = {r.folder: read_curve(r.folder) for r in runs}
     summary = summarize(cfg, runs, curves, oracle)
-    write_curves_csv(runs, curves, cfg, cfg.out / "curves.csv")
+    write_curves_csv(runs, curves, list(cfg.vary), cfg.out / "curves.csv")
     plot_curves(runs, curves, cfg, oracle, cfg.out / "curves.png")
-    _write_atomic(cfg.out / "table.md", table_markdown(summary))
-    _write_atomic(cfg.out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_atomic(cfg.out / "table.md", table_markdown(summary))
+    write_atomic(cfg.out / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
