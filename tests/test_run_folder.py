@@ -23,6 +23,7 @@ from bitcomm.checkpoint import (
     clean,
     load_state,
     load_weights,
+    rank,
     resolve,
     rolling_length,
     save_checkpoint,
@@ -301,6 +302,37 @@ def test_retention_keeps_the_last_n_and_the_best(tmp_path: Path) -> None:
     assert [e for e, _ in checkpoints(tmp_path)] == [32, 64, 80]
     assert rolling_length(checkpoints(tmp_path)[0][1]) == 4.0
     assert leftovers(tmp_path) == []
+
+
+def test_retention_ranks_by_rank_where_one_is_recorded(tmp_path: Path) -> None:
+    """A wrapped env's episodes may all have one length: there the best is the highest rolling return, recorded
+    as rank = -return; a checkpoint without a rank (older files) is ranked by its rolling length."""
+    ranks = {16: -1.0, 32: -5.0, 48: -2.0, 64: -3.0, 80: -4.0}
+    for e, r in ranks.items():
+        w = {"policy": {"w": torch.full((2,), float(e))}}
+        save_checkpoint(tmp_path, {}, w, episodes=e, batches=e // 16, state={}, rolling_length=25.0, keep=2, rank=r)
+    assert [e for e, _ in checkpoints(tmp_path)] == [32, 64, 80]
+    assert rank(checkpoints(tmp_path)[0][1]) == -5.0
+    old = tmp_path / "old"
+    save_checkpoint(old, {}, {"policy": {"w": torch.zeros(2)}}, episodes=16, batches=1, state={}, rolling_length=7.0)
+    assert rank(checkpoints(old)[0][1]) == 7.0
+
+
+def test_a_wrapped_env_run_keeps_its_best_return(tmp_path: Path) -> None:
+    import csv
+
+    from bitcomm.learn.env_config import EnvTrainConfig
+    from bitcomm.learn.env_run import train_env
+
+    cfg = EnvTrainConfig(env="mpe2.simple_speaker_listener_v4:parallel_env", episodes=96, num_envs=16,
+                         hidden=(16,), checkpoint_seconds=0.0, keep_checkpoints=1)  # fmt: skip
+    out = tmp_path / "run"
+    train_env(cfg, out, progress=False)
+    kept = checkpoints(out)
+    with (out / "metrics.csv").open(newline="") as f:  # a checkpoint after every batch: the best is kept
+        best = max(float(r["charts/team_return_rolling"]) for r in csv.DictReader(f))
+    assert 1 <= len(kept) <= 2 and kept[-1][0] == 96
+    assert min(rank(f) for _, f in kept) == pytest.approx(-best)
 
 
 def test_a_run_keeps_keep_checkpoints(tmp_path: Path, capsys) -> None:

@@ -15,7 +15,8 @@ POSIX): the state first, then the weights, then `latest.json`, which is replaced
 of a checkpoint exist, so a run killed at any moment leaves a readable latest checkpoint. What a kill
 leaves besides (temporary files, a state without its weights, files newer than `latest.json`) is
 removed by `clean` when a run starts or resumes. Nothing non-finite is ever written (`Diverged`).
-`prune` keeps the last N checkpoints and the best one (lowest rolling mean episode length).
+`prune` keeps the last N checkpoints and the best one (the lowest `rank`: the rolling mean episode length on
+the grid, minus the rolling mean team return on a wrapped env, whose episodes may all have one length).
 """
 
 from __future__ import annotations
@@ -128,9 +129,11 @@ def save_checkpoint(
     state: dict[str, Any],
     rolling_length: float | None = None,
     keep: int | None = None,
+    rank: float | None = None,
 ) -> Path:
     """Write `ckpt_<episodes>.state.pt` + `.safetensors` and point `latest.json` at them; then, with
-    `keep`, `prune` to the last `keep` and the best. Nothing is written if a value is not finite."""
+    `keep`, `prune` to the last `keep` and the best (lowest `rank`, by default `rolling_length`). Nothing is
+    written if a value is not finite."""
     from safetensors.torch import save_file
 
     refuse_nonfinite(run, episodes, **weights, state=state)
@@ -150,6 +153,7 @@ def save_checkpoint(
         "episodes": str(episodes),
         "batches": str(batches),
         "rolling_length": repr(float("nan") if rolling_length is None else float(rolling_length)),
+        "rank": repr(float("nan") if rank is None else float(rank)),
         "state_sha256": state_sha,
     }
     meta["sha256"] = content_sha256(tensors, meta)
@@ -258,22 +262,33 @@ def clean(run: Path) -> list[str]:
     return removed
 
 
-def rolling_length(file: Path) -> float:
-    """The rolling mean episode length a checkpoint recorded (inf where it has none)."""
+def _recorded(file: Path, key: str) -> float:
     try:
-        value = float(_metadata(file).get("rolling_length", "inf"))
+        value = float(_metadata(file).get(key, "inf"))
     except (ConfigError, ValueError):
         return math.inf
     return value if math.isfinite(value) else math.inf
 
 
+def rolling_length(file: Path) -> float:
+    """The rolling mean episode length a checkpoint recorded (inf where it has none)."""
+    return _recorded(file, "rolling_length")
+
+
+def rank(file: Path) -> float:
+    """What retention ranks a checkpoint by, lower is better: its recorded `rank`, else (checkpoints written
+    before ranks) its rolling mean episode length; inf where it has neither."""
+    value = _recorded(file, "rank")
+    return value if math.isfinite(value) else rolling_length(file)
+
+
 def prune(folder: Path, keep: int) -> list[int]:
-    """Remove every checkpoint but the last `keep` and the best (lowest rolling mean episode length,
-    the later of equals); `latest.json`'s is always among the last. Returns the episodes removed."""
+    """Remove every checkpoint but the last `keep` and the best (lowest `rank`, the later of equals);
+    `latest.json`'s is always among the last. Returns the episodes removed."""
     kept = checkpoints(folder)
     if len(kept) <= keep:
         return []
-    best = min(kept, key=lambda ef: (rolling_length(ef[1]), -ef[0]))[0]
+    best = min(kept, key=lambda ef: (rank(ef[1]), -ef[0]))[0]
     gone = [e for e, _ in kept[:-keep] if e != best]
     for episodes in gone:
         _remove(folder, episodes)

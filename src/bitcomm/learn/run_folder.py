@@ -339,9 +339,10 @@ def save_run_checkpoint(
     state: dict[str, Any],
     metric: str = "episode_length",
 ) -> Path:
-    """One checkpoint of the run (sync, a3c or a wrapped env), ranked by its rolling mean length for retention,
-    then the plot of `metric`."""
+    """One checkpoint of the run (sync, a3c or a wrapped env), then the plot of `metric`. Retention keeps the
+    best by the rolling mean of `metric`: the shortest episodes, or (`team_return`) the highest return."""
     rolling = float(np.mean(prog.recent)) if prog.recent else None
+    ranked = -float(np.mean(prog.recent_return)) if metric == "team_return" and prog.recent_return else rolling
     path = save_checkpoint(
         out,
         cfg.to_dict(),
@@ -351,6 +352,7 @@ def save_run_checkpoint(
         state,
         rolling_length=rolling,
         keep=cfg.keep_checkpoints,
+        rank=ranked,
     )
     plot_learning_curve(out, metric)
     return path
