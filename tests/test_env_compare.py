@@ -12,9 +12,9 @@ import json
 from pathlib import Path
 
 import pytest
+from tests.test_env_learning import SPEC
 
 from bitcomm.cli import main
-from tests.test_env_learning import SPEC
 
 STUDY = ["compare", "--env", SPEC, "--bits", "2", "--num-envs", "64", "--episodes", "2560", "--hidden", "32",
          "--lr", "3e-3", "--techniques", "improved-bitwise,no-comm", "--seeds", "1", "--jobs", "2",
