@@ -124,6 +124,10 @@ def test_text_shows_the_bits_sent_and_received_and_the_drops() -> None:
     assert lines[1][1] == "speaker  action fixed  |  sent 01 (=1) DROPPED  |  received -"
     assert lines[1][2].endswith("received 10<-speaker")
     assert lines[2][2].endswith("received 00<-speaker (dropped)")
+    box = record._replace(discrete=False, fixed=np.array([False, False]), actions=np.full((3, 2, 2), 0.5))
+    assert step_lines(box, 0)[1].startswith("speaker  action [+0.50]  |")  # its own action size: 1
+    gone = record._replace(alive=np.array([[True, True], [True, True], [False, True]]))
+    assert step_lines(gone, 2)[1] == "speaker  gone"
 
 
 def test_recorded_bits_are_what_the_channel_carried(run: Path) -> None:

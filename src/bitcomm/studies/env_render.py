@@ -40,7 +40,7 @@ class EnvEpisodeRecord(NamedTuple):
     fixed: np.ndarray  # (n,) bool: the wrapper fixes this agent's inner action
     action_sizes: tuple[int, ...]
     discrete: bool
-    actions: np.ndarray  # (T, n) int or (T, n, A) float, as chosen
+    actions: np.ndarray  # (T, n) int or (T, n, A) float (clipped to the bounds), as the env received them
     sent: np.ndarray  # (T, n, K) bits each agent sent at step t
     received: np.ndarray  # (T, n, slots, K) bits each agent read at step t (its input)
     dropped: np.ndarray  # (T, n) the message sent at step t was dropped
@@ -93,9 +93,12 @@ def record_env_episode(
     finally:
         env.close()
     T, L = int(ro.length[0]), vec.layout
+    actions = ro.actions[:T, 0].numpy()
+    if not L.discrete:  # as the env received them
+        actions = np.clip(actions, L.low, L.high)
     return EnvEpisodeRecord(
         cfg.env, L.agents, np.asarray(env.slot_senders), L.delay, L.fixed, L.action_sizes, L.discrete,
-        ro.actions[:T, 0].numpy(), ro.bits[:T, 0].numpy(), ro.received[:T, 0].numpy(), ro.dropped[:T, 0].numpy(),
+        actions, ro.bits[:T, 0].numpy(), ro.received[:T, 0].numpy(), ro.dropped[:T, 0].numpy(),
         ro.alive[:T, 0].numpy(), ro.rewards[:T, 0].numpy().astype(np.float64), images,
     )  # fmt: skip
 
