@@ -1,4 +1,5 @@
-"""`bitcomm render [RUN] --out episode.gif`: an animation of one episode (see `bitcomm.studies.render`)."""
+"""`bitcomm render [RUN] --out episode.gif`: an animation of one episode (see `bitcomm.studies.render`; for a
+run trained on a wrapped PettingZoo env, `bitcomm.studies.env_render`)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "render",
         help="animate one episode as a GIF (and PNG frames)",
         description="One frame per step, showing the state after that step: agents, goals, paths, "
-        "and the bits sent and received.",
+        "and the bits sent and received. For a run trained with --env: the env's own picture and each agent's "
+        "bits (only --drop-prob of the task flags applies).",
     )
     p.add_argument("--out", type=out_file, default="episode.gif", help="GIF to write (default %(default)s)")
     p.add_argument(
@@ -40,6 +42,11 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.studies.render import record_episode, render_frames, save_gif, save_png_frames
 
     source = source_from_args(args)
+    if source.name == "run":
+        from bitcomm.learn.env_run import env_run_config
+
+        if env_run_config(args.run_path) is not None:
+            return run_env(args)
     task = source.task_from_args(args)
     if task.env.max_steps > MAX_FRAMES:
         raise bad_value("max-steps", task.env.max_steps, f"render draws one frame per step: at most {MAX_FRAMES}")
@@ -48,6 +55,32 @@ def run(args: argparse.Namespace) -> int:
     gif = save_gif(frames, args.out, fps=args.fps)
     outcome = "all agents on their goals" if record.success else f"truncated at {task.env.max_steps}"
     print(f"{source.label}: episode of {record.length} steps ({outcome}); wrote {gif} ({len(frames)} frames)")
+    if args.frames_dir:
+        paths = save_png_frames(frames, args.frames_dir)
+        print(f"wrote {len(paths)} PNG frames to {args.frames_dir}")
+    return 0
+
+
+def run_env(args: argparse.Namespace) -> int:
+    """`render RUN` on a run trained on a wrapped env: the episode `bitcomm eval RUN --seed S --episodes 1` plays."""
+    from bitcomm.policies.source import given_task_flags
+    from bitcomm.studies.env_render import record_env_episode, render_env_frames
+    from bitcomm.studies.render import save_gif, save_png_frames
+
+    given = given_task_flags(args)
+    other = sorted(set(given) - {"drop_prob"})
+    if other:
+        raise bad_value(other[0].replace("_", "-"), given[other[0]], "a run on a wrapped env takes only --drop-prob")
+    record = record_env_episode(
+        args.run_path, args.seed, greedy=args.greedy, drop_prob=given.get("drop_prob"), max_frames=MAX_FRAMES
+    )
+    frames = render_env_frames(record)
+    gif = save_gif(frames, args.out, fps=args.fps)
+    mode = "greedy" if args.greedy else "sampling"
+    print(
+        f"{args.run_path} ({record.env}, {mode}): episode of {record.length} steps, team return "
+        f"{record.team_rewards.sum():+.3f}; wrote {gif} ({len(frames)} frames)"
+    )
     if args.frames_dir:
         paths = save_png_frames(frames, args.frames_dir)
         print(f"wrote {len(paths)} PNG frames to {args.frames_dir}")

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from bitcomm.envs.factory import make_parallel_env
-from bitcomm.envs.vector import VecEnv
+from bitcomm.envs.vector import VecEnv, VecStep
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.policies.mlp import MlpPolicy
 
@@ -68,9 +68,11 @@ def play(
     seed: np.random.SeedSequence,
     generator: torch.Generator | None,
     greedy: bool = False,
+    on_step: Callable[[VecStep], object] | None = None,
 ) -> EnvRollout:
     """Play one first episode in each of the B copies, sampling (or, `greedy`, the most likely action and
-    message); actions and messages of absent agents are drawn but never sent."""
+    message); actions and messages of absent agents are drawn but never sent. `on_step(step)` runs after each
+    step of the copies (it may read `vec.envs`, e.g. to draw one: `bitcomm render`), and changes nothing."""
     B = vec.num_envs
     ob = vec.reset(batch_seeds(seed, B))
     dist = policy.actions
@@ -87,6 +89,8 @@ def play(
         logp_a, logp_m = dist.log_prob(act_out, actions), policy.head.log_prob(msg_logits, bits)
         a_np, bits_np = actions.numpy(), bits.numpy()
         st = vec.step(a_np, bits_np)
+        if on_step is not None:
+            on_step(st)
         alive = ob.alive & valid_now[:, None]
         present = alive.sum(1)
         team = np.where(present > 0, (st.rewards * alive).sum(1) / np.maximum(present, 1), 0.0).astype(np.float32)

@@ -85,7 +85,7 @@ def record_episode(policy: AgentPolicy, task: TaskConfig, seed: int = 0) -> Epis
 LEGEND = "ring: start   line: path   disc: position   square: goal   (state after the step)"
 
 
-def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
+def load_font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
     """Pillow's built-in font at `size` where this Pillow can scale it (>= 10.1), else its bitmap font."""
     try:
         return ImageFont.load_default(size=size)
@@ -93,17 +93,17 @@ def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
         return ImageFont.load_default()
 
 
-def _bit_string(bits: np.ndarray) -> str:
+def bit_string(bits: np.ndarray) -> str:
     return "".join(str(int(b)) for b in bits)
 
 
 def _agent_line(record: EpisodeRecord, t: int, i: int) -> str:
     """What agent i chose, sent and received at step t (0-based)."""
     slots = record.task.slot_senders[i]
-    heard = [f"{_bit_string(record.received[t, i, k])}<-A{j}" for k, j in enumerate(slots) if j >= 0] or ["-"]
+    heard = [f"{bit_string(record.received[t, i, k])}<-A{j}" for k, j in enumerate(slots) if j >= 0] or ["-"]
     sent = record.sent[t, i]
     return (
-        f"A{i}  move {MOVE_NAMES[int(record.moves[t, i])]}  |  sent {_bit_string(sent)} (={int(bits_to_index(sent))})"
+        f"A{i}  move {MOVE_NAMES[int(record.moves[t, i])]}  |  sent {bit_string(sent)} (={int(bits_to_index(sent))})"
         f"  |  received {' '.join(heard)}"
     )
 
@@ -113,7 +113,7 @@ def render_frames(record: EpisodeRecord, cell_px: int | None = None) -> list[Ima
     task = record.task
     S, n = task.env.size, task.env.n_agents
     cell = cell_px or max(14, min(48, 480 // S))
-    font = _font(12)
+    font = load_font(12)
     pad, line_h = 8, 17
     returns = np.cumsum(record.team_rewards)
     header = [
