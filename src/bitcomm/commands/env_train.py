@@ -113,16 +113,23 @@ def check_env_only(args: argparse.Namespace) -> None:
             raise bad_value(name.replace("_", "-"), value, "only with --env PACKAGE.MODULE:FACTORY")
 
 
-def evaluate(args: argparse.Namespace) -> int:
-    """`bitcomm eval RUN` on a wrapped-env run: only --drop-prob of the task flags applies."""
-    from bitcomm.learn.env_eval import evaluate_env
+def drop_prob_of(args: argparse.Namespace) -> float | None:
+    """The --drop-prob typed for a command on a wrapped-env run (None: the run's own); the other task flags
+    change the grid, so one of them is one line."""
     from bitcomm.policies.source import given_task_flags
 
     given = given_task_flags(args)
     other = sorted(set(given) - {"drop_prob"})
     if other:
         raise bad_value(other[0].replace("_", "-"), given[other[0]], "a run on a wrapped env takes only --drop-prob")
-    result = evaluate_env(args.run_path, args.episodes, args.seed, given.get("drop_prob"), greedy=args.greedy)
+    return given.get("drop_prob")
+
+
+def evaluate(args: argparse.Namespace) -> int:
+    """`bitcomm eval RUN` on a wrapped-env run: only --drop-prob of the task flags applies."""
+    from bitcomm.learn.env_eval import evaluate_env
+
+    result = evaluate_env(args.run_path, args.episodes, args.seed, drop_prob_of(args), greedy=args.greedy)
     print_env_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
     return 0
 

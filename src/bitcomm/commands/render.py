@@ -63,16 +63,12 @@ def run(args: argparse.Namespace) -> int:
 
 def run_env(args: argparse.Namespace) -> int:
     """`render RUN` on a run trained on a wrapped env: the episode `bitcomm eval RUN --seed S --episodes 1` plays."""
-    from bitcomm.policies.source import given_task_flags
+    from bitcomm.commands.env_train import drop_prob_of
     from bitcomm.studies.env_render import record_env_episode, render_env_frames
     from bitcomm.studies.render import save_gif, save_png_frames
 
-    given = given_task_flags(args)
-    other = sorted(set(given) - {"drop_prob"})
-    if other:
-        raise bad_value(other[0].replace("_", "-"), given[other[0]], "a run on a wrapped env takes only --drop-prob")
     record = record_env_episode(
-        args.run_path, args.seed, greedy=args.greedy, drop_prob=given.get("drop_prob"), max_frames=MAX_FRAMES
+        args.run_path, args.seed, greedy=args.greedy, drop_prob=drop_prob_of(args), max_frames=MAX_FRAMES
     )
     frames = render_env_frames(record)
     gif = save_gif(frames, args.out, fps=args.fps)

@@ -44,6 +44,11 @@ def _interval(x: np.ndarray) -> tuple[float, tuple[float, float]]:
     return mean, (mean - half, mean + half)
 
 
+def chunk_seed(seed: int, chunk: int) -> np.random.SeedSequence:
+    """The episodes of evaluation chunk `chunk` (so `bitcomm render` can replay the first one)."""
+    return np.random.SeedSequence(seed, spawn_key=(chunk,))
+
+
 def load_env_policy(path: Path | str) -> tuple[EnvTrainConfig, MlpPolicy]:
     """The config and policy of a wrapped-env checkpoint (a run folder: its latest)."""
     weights, info = load_weights(path)
@@ -65,7 +70,7 @@ def evaluate_env(
     lengths: list[np.ndarray] = []
     chunk = 0
     while sum(len(r) for r in returns) < episodes:
-        ro = play(vec, policy, np.random.SeedSequence(seed, spawn_key=(chunk,)), generator, greedy=greedy)
+        ro = play(vec, policy, chunk_seed(seed, chunk), generator, greedy=greedy)
         returns.append(ro.team_return)
         lengths.append(ro.length)
         chunk += 1

@@ -23,7 +23,7 @@ from PIL import Image, ImageDraw
 from bitcomm.channel.core import bits_to_index
 from bitcomm.envs.vector import VecEnv
 from bitcomm.errors import ConfigError, bad_value
-from bitcomm.learn.env_eval import load_env_policy
+from bitcomm.learn.env_eval import chunk_seed, load_env_policy
 from bitcomm.learn.env_rollout import env_factory, play
 from bitcomm.studies.render import PALETTE, bit_string, load_font
 
@@ -87,7 +87,7 @@ def record_env_episode(
 
     try:
         ro = play(
-            vec, policy, np.random.SeedSequence(seed, spawn_key=(0,)), torch.Generator().manual_seed(seed),
+            vec, policy, chunk_seed(seed, 0), torch.Generator().manual_seed(seed),
             greedy=greedy, on_step=grab,
         )  # fmt: skip
     finally:
