@@ -28,3 +28,36 @@ def test_train_speed_times_the_default_recipe_and_its_single_pass_variant_and_en
     assert passes == {"sync/reinforced": (4, 16), "sync/reinforced/single-pass": (1, 1)}
     for r in results.values():
         assert r["num_envs"] == 8 and r["batches"] == 1 and r["agent_steps"] > 0 and r["agent_steps_per_s"] > 0
+
+
+def test_ablation_rows_are_single_changes_that_build_valid_configs() -> None:
+    """Every row of `benchmarks/ablation.py` is a config the library accepts; the rows between the two recipes
+    each change one option (or one group), and the last is the target itself."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from ablation import GROUPS, rows
+    from bitcomm.config import TaskConfig
+    from bitcomm.learn.config import make_train_config
+    from bitcomm.learn.recipes import RECIPES
+
+    for base, target in (("paper", "reinforced"), ("reinforced", "paper")):
+        plan = rows(base, target)
+        assert plan[0] == (base, {}) and plan[-1][0] == target
+        differing = {k for k in RECIPES[target] if RECIPES[base].get(k) != RECIPES[target][k]}
+        assert set(plan[-1][1]) == differing
+        for name, change in plan[1:-1]:  # minibatches follow a batch made smaller than them
+            assert set(GROUPS.get(name, (name,))) <= set(change) <= {*GROUPS.get(name, (name,)), "minibatches"}
+        for _, change in plan:
+            make_train_config(base, TaskConfig(), **change)
+
+
+def test_ablation_runs_a_row_and_resumes_from_its_result(tmp_path: Path) -> None:
+    argv = [sys.executable, "benchmarks/ablation.py", "--size", "3", "--bits", "4", "--minutes", "0.002", "--chunk",
+            "16", "--threads", "1", "--only", "mode", "--out", str(tmp_path)]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    first = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert first.returncode == 0, first.stderr
+    assert "| mode | mode=sync |" in first.stdout and (tmp_path / "mode" / "result.json").is_file()
+    again = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert again.stdout == first.stdout  # the kept result, not a new run
+    bad = subprocess.run([*argv[:-2], "--only", "nosuch"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "nosuch" in bad.stderr.strip().splitlines()[-1]

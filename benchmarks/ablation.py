@@ -1,0 +1,134 @@
+"""Single-change ablations between two recipes (issue 16): what each of the default recipe's choices is worth.
+
+With `--base paper --target reinforced` (the default), each option on which the two recipes differ is set in turn
+to the target's value, one change per row, everything else the paper's; with `--base reinforced --target paper`,
+each is set back in turn. Options that only mean something together change as one row (`GROUPS`: PPO-style reuse
+is epochs, minibatches and clip at once). The first row is the base itself, the last the target itself.
+
+Every row trains improved + bitwise with `benchmarks/solve.py`'s `solve_seed` for `--minutes` of training per seed
+(evaluation excluded) and reports the episodes and seconds until sampled play is below 2x and 1.15x the oracle
+(confirmed on 2,000 fixed episodes) and the final sampled and greedy episode length. Rows run one after another,
+each with the whole machine (`--threads` torch threads for synchronous rows; an asynchronous row runs its
+`workers` processes), so their seconds compare. Each row's result is kept in `<out>/<row>/result.json`: a
+stopped ablation rerun with the same flags skips finished rows.
+
+    python benchmarks/ablation.py --size 4 --bits 4 --minutes 1.5                 # from paper, each fix on in turn
+    python benchmarks/ablation.py --base reinforced --target paper --size 4 --bits 4 --minutes 1.5
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from solve import solve_seed  # noqa: E402  (benchmarks/ is not a package)
+
+GROUPS: dict[str, tuple[str, ...]] = {"ppo_reuse": ("epochs", "minibatches", "clip")}
+"""Options changed together: a clip range means nothing without reuse, and reuse is the epochs x minibatches."""
+
+
+def _fit(change: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
+    """A batch of E episodes splits into at most E minibatches: where a row leaves fewer episodes per batch
+    than minibatches, the minibatches follow (the only coupling between the recipes' options)."""
+    episodes = change.get("num_envs", base.get("num_envs", 1))
+    if change.get("minibatches", base.get("minibatches", 1)) > episodes:
+        change = {**change, "minibatches": episodes}
+    return change
+
+
+def rows(base: str, target: str) -> list[tuple[str, dict[str, Any]]]:
+    """(name, overrides on the base recipe): the base, one row per differing option or group, the target."""
+    from bitcomm.learn.recipes import RECIPES
+
+    b, t = RECIPES[base], RECIPES[target]
+    differing = [k for k in t if b.get(k) != t[k]]
+    grouped = {k for keys in GROUPS.values() for k in keys}
+    out: list[tuple[str, dict[str, Any]]] = [(base, {})]
+    for name, keys in GROUPS.items():
+        if any(k in differing for k in keys):
+            out.append((name, _fit({k: t[k] for k in keys}, b)))
+    out += [(k, _fit({k: t[k]}, b)) for k in differing if k not in grouped]
+    out.append((target, {k: t[k] for k in differing}))
+    return out
+
+
+def _cell(reached: dict[str, Any] | None) -> str:
+    return f"{reached['episodes']:,} ep / {reached['wall_s']:.0f} s" if reached else "not reached"
+
+
+def table(results: list[tuple[str, dict[str, Any], dict[str, Any]]], a: argparse.Namespace) -> str:
+    lines = [
+        f"{a.size}x{a.size} grid, K = {a.bits}, improved + bitwise, seed {a.seed}, {a.minutes:g} min of training per "
+        f"row; from `{a.base}`, one change toward `{a.target}` per row (oracle "
+        f"{results[0][2]['oracle']:.2f} on the evaluation episodes).",
+        "",
+        "| row | change | 2x oracle | 1.15x oracle | final sampled | final greedy | episodes played |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for name, change, r in results:
+        shown = ", ".join(f"{k}={v}" for k, v in change.items()) if name not in (a.base, a.target) else "—"
+        lines.append(
+            f"| {name} | {shown} | {_cell(r['reached']['2x'])} | {_cell(r['reached']['1.15x'])} | "
+            f"{r['final_eval']['sampled']:.2f} | {r['final_eval']['greedy']:.2f} | {r['episodes']:,} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    from bitcomm.learn.recipes import RECIPES
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--base", choices=tuple(RECIPES), default="paper")
+    ap.add_argument("--target", choices=tuple(RECIPES), default="reinforced")
+    ap.add_argument("--size", type=int, default=4)
+    ap.add_argument("--bits", type=int, default=4)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--minutes", type=float, default=1.5, help="training wall time per row")
+    ap.add_argument("--chunk", type=int, default=512, help="episodes between checks")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads of a synchronous row")
+    ap.add_argument("--only", default="", help="comma-separated row names (default: all)")
+    ap.add_argument("--out", type=Path, default=None, help="default runs/ablation/<base>-to-<target>-<size>x<size>")
+    a = ap.parse_args()
+    if a.base == a.target:
+        ap.error(f"--target {a.target!r}: must differ from --base")
+    if a.minutes <= 0 or a.chunk < 1 or a.threads < 1 or a.size < 2 or a.bits < 1:
+        ap.error("--minutes must be > 0; --chunk, --threads, --bits >= 1; --size >= 2")
+    out = a.out or Path("runs/ablation") / f"{a.base}-to-{a.target}-{a.size}x{a.size}"
+    plan = rows(a.base, a.target)
+    if a.only:
+        names = {n for n, _ in plan}
+        wanted = [n.strip() for n in a.only.split(",")]
+        unknown = [n for n in wanted if n not in names]
+        if unknown:
+            ap.error(f"--only {unknown[0]!r}: not a row; rows are {', '.join(names)}")
+        plan = [(n, c) for n, c in plan if n in wanted]
+    results = []
+    for name, change in plan:
+        folder = out / name
+        saved = folder / "result.json"
+        settings = {"recipe": a.base, "set": change, "size": a.size, "bits": a.bits, "seed": a.seed,
+                    "minutes": a.minutes, "chunk": a.chunk, "threads": a.threads}  # fmt: skip
+        if saved.is_file() and json.loads(saved.read_text())["settings"] == json.loads(json.dumps(settings)):
+            result = json.loads(saved.read_text())["result"]
+        else:
+            args = {**settings, "estimator": "improved", "messages": "bitwise", "max_episodes": 10**9,
+                    "eval_episodes": 2000, "out": str(folder), "set": list(change.items())}  # fmt: skip
+            result = solve_seed(args, a.seed)
+            folder.mkdir(parents=True, exist_ok=True)
+            saved.write_text(json.dumps({"settings": settings, "result": result}, indent=1) + "\n")
+        results.append((name, change, result))
+        r = result
+        print(f"{name}: 2x {_cell(r['reached']['2x'])}, 1.15x {_cell(r['reached']['1.15x'])}, final sampled "
+              f"{r['final_eval']['sampled']:.2f} / greedy {r['final_eval']['greedy']:.2f}", flush=True)  # fmt: skip
+    text = table(results, a)
+    (out / "table.md").write_text(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
