@@ -262,6 +262,8 @@ def test_resume_gives_the_uninterrupted_run(tmp_path: Path) -> None:
         (["--env", SPEC, "--fixed-actions", "[1]"], "--fixed-actions"),
         (["--topology", "ring"], "only with --env"),
         (["--env", SPEC, "--goal-coef", "1"], "not used with --env"),
+        (["--env", SPEC, "--size", "5"], "a grid option, not used with --env"),
+        (["--env", SPEC, "--agents", "3"], "a grid option, not used with --env"),
     ],
 )
 def test_cli_errors_are_one_line(
