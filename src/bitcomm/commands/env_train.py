@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -59,14 +60,17 @@ def train(args: argparse.Namespace, threads: int | None) -> int:
         if args.out is None:
             raise bad_value("resume", True, "give the run folder with --out")
         cfg = resume_env_config(args.out, args.episodes)
+        if args.env_workers is not None:  # where the copies are stepped changes no episode: a resume may change it
+            cfg = dataclasses.replace(cfg, env_workers=args.env_workers)
     else:
         channel = EnvChannelConfig(
             bits=args.bits, delay=args.delay, flip_prob=args.flip_prob, drop_prob=args.drop_prob,
             topology=args.topology if args.topology is not None else "all", fixed_actions=args.fixed_actions,
         )  # fmt: skip
         extra: dict[str, Any] = {"episodes": args.episodes} if args.episodes is not None else {}
-        if args.obs_norm is not None:
-            extra["obs_norm"] = args.obs_norm
+        for name in ("obs_norm", "env_workers"):
+            if getattr(args, name) is not None:
+                extra[name] = getattr(args, name)
         cfg = EnvTrainConfig(
             env=args.env, env_kwargs=args.env_kwargs or {}, channel=channel, estimator=args.estimator,
             messages=args.messages, seed=args.seed, **extra, **env_overrides(args),
