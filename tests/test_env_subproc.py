@@ -9,6 +9,7 @@ process starts with this process's `sys.path`.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import signal
 from collections.abc import Iterator
@@ -127,6 +128,10 @@ def test_a_run_with_workers_learns_the_same_weights(tmp_path: Path) -> None:
     (w0, _), (w2, info) = (load_weights(p) for p in runs)
     assert info["config"]["env_workers"] == 2 and w0.keys() == w2.keys() == {"policy", "critic"}
     assert all(torch.equal(w0[net][k], w2[net][k]) for net in w0 for k in w0[net])
+    # where the copies are stepped changes no episode, so a resume may change it
+    argv = ["train", "--resume", "--out", str(tmp_path / "w2"), "--episodes", "80", "--env-workers", "0"]
+    assert main([*argv, "--quiet", "--eval-episodes", "0"]) == 0
+    assert json.loads((tmp_path / "w2" / "config.json").read_text())["env_workers"] == 0
 
 
 # ---------------------------------------------------------------------------------------------- bad input
