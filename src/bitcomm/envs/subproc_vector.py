@@ -40,14 +40,22 @@ class WorkerError(NamedTuple):
 
 
 def _work(conn: Connection, make: Callable[[], ParallelEnv], count: int) -> None:
-    """A worker's loop: build a `VecEnv` of `count` copies, then answer `reset`, `step` and `close`."""
+    """A worker's loop: build a `VecEnv` of `count` copies, then answer `reset` and `step` until `close` or
+    until the learner's end of the pipe is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    vec: VecEnv | None = None
     try:
         vec = VecEnv(make, count)
+    except Exception as err:
+        conn.send(WorkerError(isinstance(err, ConfigError), _describe(err)))
+        conn.close()
+        return
+    try:
         conn.send(np.array(vec.num_envs))
         while True:
-            command, *arrays = conn.recv()
+            try:
+                command, *arrays = conn.recv()
+            except EOFError:
+                break
             if command == "close":
                 break
             try:
@@ -55,13 +63,10 @@ def _work(conn: Connection, make: Callable[[], ParallelEnv], count: int) -> None
                 conn.send(_flat(out))
             except Exception as err:
                 conn.send(WorkerError(isinstance(err, ConfigError), _describe(err)))
-    except (EOFError, OSError, KeyboardInterrupt):  # the learner's end of the pipe is gone
+    except OSError:  # a reply could not be sent: the learner is gone
         pass
-    except Exception as err:  # building the copies failed
-        conn.send(WorkerError(isinstance(err, ConfigError), _describe(err)))
     finally:
-        if vec is not None:
-            vec.close()
+        vec.close()
         conn.close()
 
 
