@@ -86,7 +86,13 @@ def add_env_flags(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="standardise observations and state by running statistics (default: off)",
     )
+    g.add_argument(
+        "--env-workers",
+        type=int,
+        default=None,
+        help="step the env copies in W worker processes (slow envs); the same episodes (default 0: in this process)",
+    )
 
 
-ENV_ONLY = ("env_kwargs", "topology", "fixed_actions", "obs_norm")
+ENV_ONLY = ("env_kwargs", "topology", "fixed_actions", "obs_norm", "env_workers")
 """Flags that mean something only with --env."""

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -69,7 +70,7 @@ def env_config_from_args(args: argparse.Namespace) -> EnvTrainConfig:
         topology=args.topology if args.topology is not None else "all", fixed_actions=args.fixed_actions,
     )  # fmt: skip
     extra: dict[str, Any] = {}
-    for name in ("episodes", "obs_norm", "estimator", "messages", "seed"):
+    for name in ("episodes", "obs_norm", "env_workers", "estimator", "messages", "seed"):
         if getattr(args, name, None) is not None:
             extra[name] = getattr(args, name)
     return EnvTrainConfig(env=args.env, env_kwargs=args.env_kwargs or {}, channel=channel, **extra,
@@ -89,6 +90,8 @@ def train(args: argparse.Namespace, threads: int | None) -> int:
         if args.out is None:
             raise bad_value("resume", True, "give the run folder with --out")
         cfg = resume_env_config(args.out, args.episodes)
+        if args.env_workers is not None:  # where the copies are stepped changes no episode: a resume may change it
+            cfg = dataclasses.replace(cfg, env_workers=args.env_workers)
     else:
         cfg = env_config_from_args(args)
     module = cfg.env.partition(":")[0].rpartition(".")[2]

@@ -3,7 +3,8 @@ its vectorized view with the channel attached (`vec.py`), the PettingZoo `Parall
 (`goal_exchange_v0.py`) and text rendering. The grid is one task: it provides the per-agent arrays
 the learning core speaks (see `bitcomm.learn.rollout.Rollout`).
 `channel_wrapper.BitChannel` puts the same channel on any other PettingZoo `ParallelEnv` (SPEC 8);
-`vector.VecEnv` steps B copies of one as arrays, and `factory` builds one from `"package.module:factory"`.
+`vector.VecEnv` steps B copies of one as arrays (`subproc_vector.SubprocVecEnv`: the same, in worker processes,
+for slow envs), and `factory` builds one from `"package.module:factory"`.
 
 May import: `bitcomm.config`, `bitcomm.errors`, `bitcomm.channel`. (`Channel` and the bit conversions
 are re-exported here, and `bitcomm.envs.channel` still names them, for code written before the channel

@@ -12,19 +12,24 @@ agent name. This module is the one place that converts, so nothing above it loop
 - rewards `(B, n)`, `dropped (B, n)` (the message the agent sent this step was lost), `ended (B,)`.
 
 The inner envs are Python objects stepped one at a time, so the loop over the B copies stays; an env
-whose episode has ended is not stepped again until the next `reset`.
+whose episode has ended is not stepped again until the next `reset`. Where that loop is the bottleneck (a slow
+env), `bitcomm.envs.subproc_vector.SubprocVecEnv` runs shares of the copies, each a `VecEnv`, in worker
+processes; `WrappedEnvMaker` is the picklable maker both build their copies with.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from types import TracebackType
 from typing import Any, NamedTuple
 
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from bitcomm.envs.channel_wrapper import BitChannel
+from bitcomm.envs.factory import make_parallel_env
 from bitcomm.errors import bad_value
 
 
@@ -138,8 +143,31 @@ class VecStep(NamedTuple):
     ended: np.ndarray  # (B,) bool: the copy's episode ended with this step
 
 
+@dataclass(frozen=True)
+class WrappedEnvMaker:
+    """Makes one copy of a PettingZoo env (by its spec `"package.module:factory"` and keyword arguments) wrapped
+    in `BitChannel` with these channel options. Plain data, so it pickles: a worker process builds its copies
+    with it (a closure would not cross the process boundary)."""
+
+    env: str
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    bits: int = 7
+    delay: int = 1
+    flip_prob: float = 0.0
+    drop_prob: float = 0.0
+    topology: str | list[tuple[str, str]] = "all"
+    fixed_actions: dict[str, Any] | None = None
+
+    def __call__(self) -> ParallelEnv:
+        return BitChannel(
+            make_parallel_env(self.env, self.env_kwargs), bits=self.bits, delay=self.delay, flip_prob=self.flip_prob,
+            drop_prob=self.drop_prob, topology=self.topology, fixed_actions=self.fixed_actions,
+        )  # fmt: skip
+
+
 class VecEnv:
-    """B wrapped envs made by `make()`; `reset(seeds)` then `step(...)` until every copy has ended."""
+    """B wrapped envs made by `make()`; `reset(seeds)` then `step(...)` until every copy has ended; `close()`
+    (or `with`) closes them."""
 
     def __init__(self, make: Callable[[], ParallelEnv], num_envs: int) -> None:
         self.envs = [make() for _ in range(num_envs)]
@@ -200,6 +228,16 @@ class VecEnv:
             else:
                 self._write(out, int(b), obs)
         return VecStep(out, rewards, dropped, ended)
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+    def __enter__(self) -> VecEnv:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, err: BaseException | None, tb: TracebackType | None) -> None:
+        self.close()
 
     def _action(self, action: np.ndarray, i: int) -> Any:
         if self.layout.discrete:

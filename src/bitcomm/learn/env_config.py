@@ -12,6 +12,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from bitcomm.envs.subproc_vector import check_workers
 from bitcomm.errors import bad_value, check_int, check_number, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.policies.heads import MESSAGE_HEADS
@@ -57,6 +58,9 @@ class EnvTrainConfig:
     seed: int = 0
     num_envs: int = 32
     """Episodes per batch (copies of the env stepped together)."""
+    env_workers: int = 0
+    """0: the copies are stepped in the learner's process; W >= 1: split over W worker processes (for slow
+    envs; the episodes, and so the run, are the same)."""
     lr: float = 1e-3
     critic_lr: float = 1e-3
     gamma: float = 0.95
@@ -86,6 +90,7 @@ class EnvTrainConfig:
         for name in ("episodes", "num_envs", "epochs", "minibatches", "keep_checkpoints"):
             check_int(name, getattr(self, name), 1)
         check_int("seed", self.seed, 0)
+        check_workers(self.env_workers, self.num_envs, 0)
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
         for name in ("lr", "critic_lr", "max_grad_norm"):

@@ -15,8 +15,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from bitcomm.envs.factory import make_parallel_env
-from bitcomm.envs.vector import VecEnv, VecStep
+from bitcomm.envs.subproc_vector import SubprocVecEnv
+from bitcomm.envs.vector import VecEnv, VecStep, WrappedEnvMaker
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.policies.mlp import MlpPolicy
 
@@ -40,20 +40,14 @@ class EnvRollout(NamedTuple):
     team_return: np.ndarray  # (B,) undiscounted sum of team rewards
 
 
-def env_factory(cfg: EnvTrainConfig, drop_prob: float | None = None) -> Callable[[], object]:
-    """A maker of the wrapped env of `cfg` (with another drop probability, e.g. 1 to cut the channel)."""
-    from bitcomm.envs.channel_wrapper import BitChannel
-
+def env_factory(cfg: EnvTrainConfig, drop_prob: float | None = None) -> WrappedEnvMaker:
+    """A (picklable) maker of the wrapped env of `cfg` (with another drop probability, e.g. 1 to cut the channel)."""
     ch = cfg.channel if drop_prob is None else dataclasses.replace(cfg.channel, drop_prob=drop_prob)
     topology = ch.topology if isinstance(ch.topology, str) else [(str(s), str(r)) for s, r in ch.topology]
-
-    def make() -> object:
-        return BitChannel(
-            make_parallel_env(cfg.env, cfg.env_kwargs), bits=ch.bits, delay=ch.delay, flip_prob=ch.flip_prob,
-            drop_prob=ch.drop_prob, topology=topology, fixed_actions=ch.fixed_actions,
-        )  # fmt: skip
-
-    return make
+    return WrappedEnvMaker(
+        cfg.env, cfg.env_kwargs, bits=ch.bits, delay=ch.delay, flip_prob=ch.flip_prob, drop_prob=ch.drop_prob,
+        topology=topology, fixed_actions=ch.fixed_actions,
+    )  # fmt: skip
 
 
 def batch_seeds(seed: np.random.SeedSequence, num_envs: int) -> np.ndarray:
@@ -107,5 +101,8 @@ def play(
     return EnvRollout(c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9], c[10], c[11], length, team_return)
 
 
-def make_vec(cfg: EnvTrainConfig, num_envs: int, drop_prob: float | None = None) -> VecEnv:
-    return VecEnv(env_factory(cfg, drop_prob), num_envs)  # type: ignore[arg-type]
+def make_vec(cfg: EnvTrainConfig, num_envs: int, drop_prob: float | None = None, workers: int = 0) -> VecEnv:
+    """B copies of the wrapped env of `cfg`: in this process (`workers` 0), or split over `workers` processes
+    (`SubprocVecEnv`: the same episodes, for slow envs). Close it (`with`) when done."""
+    make = env_factory(cfg, drop_prob)
+    return SubprocVecEnv(make, num_envs, workers, cfg.env) if workers else VecEnv(make, num_envs)

@@ -5,7 +5,8 @@ metrics.csv, TensorBoard, the learning curve of the team return, atomic resumabl
 folder's lock. Batch k plays `num_envs` first episodes whose env seeds come from
 `SeedSequence(seed, spawn_key=(k,))`; weights start under `torch.manual_seed(seed)`; sampling and
 minibatch order come from one generator seeded with `seed`, whose state is checkpointed. So a run is
-reproducible on one machine, and a resumed run continues as if it had never stopped.
+reproducible on one machine, and a resumed run continues as if it had never stopped; with `env_workers` the
+env copies are stepped in worker processes, which changes no episode.
 """
 
 from __future__ import annotations
@@ -40,13 +41,16 @@ def train_env(cfg: EnvTrainConfig, out: Path, resume: bool = False, progress: bo
     out = Path(out)
     if resume and not has_checkpoint(out):
         raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
-    vec = make_vec(cfg, cfg.num_envs)  # refuses a bad env or channel before the folder is touched
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ConfigError(f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})") from None
-    with run_lock(out):
-        return _train(cfg, vec, out, resume, progress)
+    # refuses a bad env or channel before the folder is touched; closed (its workers stopped) however the run ends
+    with make_vec(cfg, cfg.num_envs, workers=cfg.env_workers) as vec:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise ConfigError(
+                f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})"
+            ) from None
+        with run_lock(out):
+            return _train(cfg, vec, out, resume, progress)
 
 
 def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: bool) -> Path:

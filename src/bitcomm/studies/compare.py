@@ -67,7 +67,7 @@ GRID_POINTS = 200
 CSV_POINTS = 1000
 """At most this many rows of each run's curve go to curves.csv (evenly spaced, always the last)."""
 EVALUATION = "evaluation.json"
-RESUMABLE = ("episodes", "checkpoint_seconds", "keep_checkpoints")
+RESUMABLE = ("episodes", "checkpoint_seconds", "keep_checkpoints", "env_workers")
 """Config fields a finished or partial run may differ in from the study and still count as its run."""
 STUDY_EPISODES = 60_000
 """The default budget of every run: on the default task, improved + bitwise under `reinforced` is below
