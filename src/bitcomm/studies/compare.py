@@ -492,6 +492,39 @@ def threshold_key(multiple: float) -> str:
     return f"{multiple:g}x"
 
 
+def evaluation_of(run: Run, cfg: CompareConfig | EnvCompareConfig) -> dict[str, Any]:
+    """The run's evaluation on the study's episode set; one line if it has none."""
+    evaluation = read_evaluation(run, cfg.eval_episodes, cfg.eval_seed)
+    if evaluation is None:
+        raise ConfigError(f"invalid run={str(run.folder)!r}: no evaluation of its latest checkpoint")
+    return evaluation
+
+
+def run_record(run: Run, curve: Any, out: Path, equal_wall: float, field: str, measure: str) -> dict[str, Any]:
+    """What every study's summary gives of a run: where it is, what it played, and its curve's rolling `field`
+    (named `measure`) at its end and at the study's equal wall-clock time."""
+    return {
+        "seed": run.seed,
+        "folder": str(run.folder.relative_to(out)),
+        "episodes": int(curve.episodes[-1]),
+        "wall_s": float(curve.wall_s[-1]),
+        f"final_rolling_{measure}": float(getattr(curve, field)[-1]),
+        "rolling_at_equal_wall": rolling_at(curve, equal_wall, field),
+    }
+
+
+def technique_entry(conf: Configuration) -> dict[str, Any]:
+    """The first fields of a configuration's summary: what it trains."""
+    estimator, messages = TECHNIQUES.get(conf.technique, TECHNIQUES["improved-bitwise"])
+    return {
+        "name": conf.name,
+        "technique": conf.technique,
+        "estimator": estimator,
+        "messages": messages,
+        "communication": conf.technique != NO_COMM,
+    }
+
+
 def summarize(
     cfg: CompareConfig, runs: list[Run], curves: dict[Path, Curve], oracle: dict[str, EvalResult | None]
 ) -> dict[str, Any]:
@@ -506,31 +539,15 @@ def summarize(
         level = result.mean_episode_length if result is not None else None
         records = []
         for run in (r for r in runs if r.configuration == conf):
-            curve, evaluation = curves[run.folder], read_evaluation(run, cfg.eval_episodes, cfg.eval_seed)
-            if evaluation is None:
-                raise ConfigError(f"invalid run={str(run.folder)!r}: no evaluation of its latest checkpoint")
-            records.append(
-                {
-                    "seed": run.seed,
-                    "folder": str(run.folder.relative_to(cfg.out)),
-                    "episodes": int(curve.episodes[-1]),
-                    "wall_s": float(curve.wall_s[-1]),
-                    "final_rolling_episode_length": float(curve.length_rolling[-1]),
-                    "rolling_at_equal_wall": rolling_at(curve, equal_wall),
-                    "sampled": evaluation["sampled"],
-                    "greedy": evaluation["greedy"],
-                    "reached": {
-                        threshold_key(m): None if level is None else first_below(curve, m * level) for m in THRESHOLDS
-                    },
-                }
-            )
-        estimator, messages = TECHNIQUES.get(conf.technique, TECHNIQUES["improved-bitwise"])
+            curve, evaluation = curves[run.folder], evaluation_of(run, cfg)
+            record = run_record(run, curve, cfg.out, equal_wall, "length_rolling", "episode_length")
+            record["sampled"], record["greedy"] = evaluation["sampled"], evaluation["greedy"]
+            record["reached"] = {
+                threshold_key(m): None if level is None else first_below(curve, m * level) for m in THRESHOLDS
+            }
+            records.append(record)
         entry: dict[str, Any] = {
-            "name": conf.name,
-            "technique": conf.technique,
-            "estimator": estimator,
-            "messages": messages,
-            "communication": conf.technique != NO_COMM,
+            **technique_entry(conf),
             "values": dict(conf.values),
             "oracle_mean_episode_length": level,
             "wall_s": interval([r["wall_s"] for r in records]),

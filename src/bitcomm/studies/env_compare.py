@@ -24,7 +24,6 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from bitcomm.errors import ConfigError
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.plotting import save_figure
 from bitcomm.studies.compare import (
@@ -37,13 +36,15 @@ from bitcomm.studies.compare import (
     Run,
     cell,
     check_study_fields,
+    evaluation_of,
     execute_all,
     interval,
     on_grid,
     plural,
     read_columns,
     read_evaluation,
-    rolling_at,
+    run_record,
+    technique_entry,
     write_atomic,
     write_curves_csv,
 )
@@ -126,27 +127,11 @@ def summarize(cfg: EnvCompareConfig, runs: list[Run], curves: dict[Path, EnvCurv
     for conf in dict.fromkeys(r.configuration for r in runs):
         records = []
         for run in (r for r in runs if r.configuration == conf):
-            curve, evaluation = curves[run.folder], read_evaluation(run, cfg.eval_episodes, cfg.eval_seed)
-            if evaluation is None:
-                raise ConfigError(f"invalid run={str(run.folder)!r}: no evaluation of its latest checkpoint")
-            records.append(
-                {
-                    "seed": run.seed,
-                    "folder": str(run.folder.relative_to(cfg.out)),
-                    "episodes": int(curve.episodes[-1]),
-                    "wall_s": float(curve.wall_s[-1]),
-                    "final_rolling_team_return": float(curve.return_rolling[-1]),
-                    "rolling_at_equal_wall": rolling_at(curve, equal_wall, "return_rolling"),
-                    **{play: evaluation[play] for play in PLAYS},
-                }
-            )
-        estimator, messages = TECHNIQUES.get(conf.technique, TECHNIQUES["improved-bitwise"])
+            curve, evaluation = curves[run.folder], evaluation_of(run, cfg)
+            record = run_record(run, curve, cfg.out, equal_wall, "return_rolling", "team_return")
+            records.append({**record, **{play: evaluation[play] for play in PLAYS}})
         entry: dict[str, Any] = {
-            "name": conf.name,
-            "technique": conf.technique,
-            "estimator": estimator,
-            "messages": messages,
-            "communication": conf.technique != NO_COMM,
+            **technique_entry(conf),
             "wall_s": interval([r["wall_s"] for r in records]),
             "final_rolling_team_return": interval([r["final_rolling_team_return"] for r in records]),
             "rolling_at_equal_wall": interval([r["rolling_at_equal_wall"] for r in records]),
