@@ -61,3 +61,18 @@ def test_ablation_runs_a_row_and_resumes_from_its_result(tmp_path: Path) -> None
     assert again.stdout == first.stdout  # the kept result, not a new run
     bad = subprocess.run([*argv[:-2], "--only", "nosuch"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "nosuch" in bad.stderr.strip().splitlines()[-1]
+
+
+def test_greedy_split_plays_a_run_four_ways(tmp_path: Path) -> None:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = str(tmp_path / "run")
+    train = [sys.executable, "-m", "bitcomm.cli", "train", "--size", "3", "--bits", "4", "--max-steps", "16",
+             "--episodes", "32", "--num-envs", "16", "--epochs", "1", "--minibatches", "1", "--eval-episodes", "0",
+             "--quiet", "--threads", "1", "--out", run]  # fmt: skip
+    assert subprocess.run(train, cwd=ROOT, capture_output=True, env=env, timeout=120).returncode == 0
+    out = subprocess.run([sys.executable, "benchmarks/greedy_split.py", run, "--episodes", "20"], cwd=ROOT,
+                         capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    rows = [line for line in out.stdout.splitlines() if line.startswith(("| sampled", "| greedy"))]
+    assert [r.split(" | ")[:2] for r in rows] == [["| sampled", "sampled"], ["| greedy", "greedy"],
+                                                  ["| greedy", "sampled"], ["| sampled", "greedy"]]  # fmt: skip
