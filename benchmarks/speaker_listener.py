@@ -18,7 +18,8 @@ are also measured with the channel cut at evaluation (`cut at eval`). The table 
 (the sum over the episode's 25 steps of the shared reward, minus the squared distance to the goal) over seeds
 with a 95% Student's t interval (`bitcomm.studies.stats`) and the information the speaker's messages carry
 about the goal colour (estimated from counts over 256 episodes), and writes it into docs/env_learning.md between
-markers. Finished runs are skipped and unfinished ones resumed, so the script can be stopped and rerun.
+markers. Finished runs are skipped and unfinished ones resumed, so the script can be stopped and rerun; a run
+another call of the script is training (its folder's lock is held) is skipped, so two calls share the work.
 
     python benchmarks/speaker_listener.py [--episodes 8960] [--seeds 3] [--jobs 1] [--threads 1] [--techniques]
         [--out runs/speaker_listener] [--bits 3] [--eval-episodes 1000] [--only NAME,...] [--no-docs]
@@ -92,6 +93,9 @@ def train_one(name: str, seed: int, args: argparse.Namespace) -> Path:
     t0 = time.time()
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads)}
     out = subprocess.run(argv, capture_output=True, text=True, env=env)
+    if out.returncode != 0 and "is writing this run folder" in out.stderr:
+        print(f"skipped {run.name}: another process is training it", flush=True)
+        return run
     if out.returncode != 0:
         raise SystemExit(f"{name} seed {seed} failed: {out.stderr.strip()}")
     print(f"trained {run.name} in {time.time() - t0:.0f} s", flush=True)
