@@ -17,6 +17,7 @@ The last line printed is one JSON object.
     python benchmarks/solve.py --minutes 45                             # rung 3
     python benchmarks/solve.py --recipe paper --minutes 15              # the paper's own recipe
     python benchmarks/solve.py --set gamma=0.8 --set lr=3e-4            # any learning option (bitcomm train --help)
+    python benchmarks/solve.py --set anneal_lr=true --max-episodes 200000   # rates decay over 200,000 episodes
 """
 
 from __future__ import annotations
@@ -35,6 +36,8 @@ from bitcomm.learn.recipes import DEFAULT_RECIPE
 RUNGS = (("2x", 2.0), ("1.5x", 1.5), ("1.15x", 1.15))
 GREEDY_RUNG = ("greedy 1.05x", 1.05)
 EVAL_SEED = 12345
+MAX_EPISODES = 10**9
+"""No episode budget: the wall-clock budget (`--minutes`) ends a seed."""
 
 
 def _last_row(run: Path) -> dict[str, str]:
@@ -161,7 +164,12 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--minutes", type=float, default=15.0, help="training wall-time budget per seed")
-    ap.add_argument("--max-episodes", type=int, default=10**9)
+    ap.add_argument(
+        "--max-episodes",
+        type=int,
+        default=MAX_EPISODES,
+        help="episode budget per seed (and, with --set anneal_lr=true, the horizon of the learning-rate schedule)",
+    )
     ap.add_argument("--chunk", type=int, default=1024, help="episodes between checks")
     ap.add_argument("--eval-episodes", type=int, default=2000)
     ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once")
@@ -182,6 +190,10 @@ def main() -> None:
             ap.error(f"--set {item!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(options))}")
     try:  # bad input is one line before any seed starts
         overrides = [(name, options[name].parse(value)) for name, value in pairs]
+        if dict(overrides).get("anneal_lr") and "anneal_episodes" not in dict(overrides):
+            if a.max_episodes == MAX_EPISODES:
+                ap.error("--set anneal_lr=true needs --max-episodes N: the episodes the rates decay over")
+            overrides.append(("anneal_episodes", a.max_episodes))  # one schedule across the chunks
         for name in ("seeds", "jobs", "threads", "chunk", "eval_episodes", "max_episodes"):
             check_int(name, getattr(a, name), 1)
         check_number("minutes", a.minutes, 0.0, strict=True)

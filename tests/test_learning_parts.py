@@ -125,6 +125,17 @@ def test_anneal_lr_scales_every_learning_rate_by_the_budget_left(anneal):
         assert lrs == pytest.approx([b * (1 - progress) if anneal else b for b in base])
 
 
+def test_the_schedule_follows_anneal_episodes_when_a_run_is_trained_in_pieces():
+    """solve.py trains in chunks, each resumed with a larger budget: `anneal_episodes` keeps one schedule."""
+    whole = make_train_config("reinforced", TINY, episodes=1000, anneal_lr=True)
+    piece = make_train_config("reinforced", TINY, episodes=250, anneal_lr=True, anneal_episodes=1000)
+    assert piece.schedule_progress(200) == whole.schedule_progress(200) == 0.2
+    assert make_train_config("reinforced", TINY, episodes=250, anneal_lr=True).schedule_progress(200) == 0.8
+    assert piece.schedule_progress(5000) == 1.0  # played past the schedule: the rates stay at zero
+    with pytest.raises(ConfigError, match="anneal-episodes"):
+        make_train_config("reinforced", TINY, anneal_episodes=1000)  # without --anneal-lr it would do nothing
+
+
 def test_rollout_holds_whole_first_episodes():
     cfg = make_train_config("paper", TINY, num_envs=16, mode="sync")
     ro = Collector(TINY, 16).collect(PolicyNet(TINY, cfg.model), np.random.SeedSequence(1), torch.Generator())

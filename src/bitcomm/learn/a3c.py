@@ -151,7 +151,7 @@ def _worker(
             # sync, rollout, update
             pull(local, remote)
             ro = collector.collect(learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(k,)), generator)
-            stats = learner.update(ro, generator, progress=claimed_before / cfg.episodes)
+            stats = learner.update(ro, generator, progress=cfg.schedule_progress(claimed_before))
             results.put(("batch", w, ro.length.copy(), ro.team_return.copy(), ro.success.copy(), stats))
         results.put(("done", w))
     except BaseException:  # report, so the main process stops with the worker's traceback

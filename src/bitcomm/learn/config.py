@@ -93,6 +93,9 @@ class TrainConfig:
     """Decay every learning rate linearly to zero over the budget (`episodes`), as CleanRL's PPO does:
     the last updates are then too small to undo a converged policy (the late relapses of
     docs/results.md). The schedule follows `episodes`, so resuming with a larger budget raises it again."""
+    anneal_episodes: int = 0
+    """Episodes over which `anneal_lr` decays the rates (0: the budget, `episodes`): a run trained in pieces
+    (each resumed with a larger budget, as benchmarks/solve.py does) keeps one schedule."""
     map_lr: float = 0.01
     """Adam learning rate of the message-map decoder (ModelConfig.message_map), which starts at zero
     (a uniform map); a decoder is a small linear read-out that the policy's rate would fit slowly."""
@@ -116,6 +119,9 @@ class TrainConfig:
             raise bad_value("recipe", self.recipe, f"choose one of {', '.join(RECIPES)}")
         check_int("train_max_steps", self.train_max_steps, 0)  # 0: the task's max_steps
         check_int("staleness", self.staleness, 0)
+        check_int("anneal_episodes", self.anneal_episodes, 0)
+        if self.anneal_episodes and not self.anneal_lr:
+            raise bad_value("anneal-episodes", self.anneal_episodes, "acts only with --anneal-lr; leave it at 0")
         if self.staleness and self.backend != "ray":
             raise bad_value("staleness", self.staleness, "acts only on --backend ray; leave it at 0")
         for name in ("workers", "episodes", "num_envs", "epochs", "minibatches", "keep_checkpoints"):
@@ -155,6 +161,10 @@ class TrainConfig:
         if limit == 0 or limit >= self.task.env.max_steps:
             return self.task
         return dataclasses.replace(self.task, env=dataclasses.replace(self.task.env, max_steps=limit))
+
+    def schedule_progress(self, episodes: int) -> float:
+        """The fraction of the learning-rate schedule (`anneal_lr`) done after `episodes` episodes, at most 1."""
+        return min(1.0, episodes / (self.anneal_episodes or self.episodes))
 
     @property
     def pure(self) -> bool:
