@@ -33,9 +33,6 @@ from bitcomm.commands.flags import (
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
 from bitcomm.errors import bad_value
 from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
-
-if TYPE_CHECKING:
-    from bitcomm.learn.config import TrainConfig
 from bitcomm.studies.compare import (
     CHOICES,
     ENV_STUDY_SEEDS,
@@ -46,6 +43,9 @@ from bitcomm.studies.compare import (
     parse_vary,
     run_compare,
 )
+
+if TYPE_CHECKING:
+    from bitcomm.learn.config import TrainConfig
 
 MAX_SEEDS = 1000
 """Seeds per configuration: 1000 runs of each is already months of CPU (and keeps --eval-seed's default free)."""
