@@ -45,6 +45,7 @@ class EnvLearner:
         self.recipient_of = torch.from_numpy(slot_table(layout.recipients.T))  # (n, R): j's recipients, -1 pad
         self.not_recipient = torch.from_numpy(~layout.recipients)  # (n, n): [j, k] k's action may be given
         self.learns_action = torch.from_numpy(~layout.fixed)  # (n,)
+        self.codebook = None  # no auxiliary code book here: the run folder's helpers save what a Learner saves
 
     # ---------------------------------------------------------------- critic
     def _queries(self) -> tuple[torch.Tensor, torch.Tensor]:

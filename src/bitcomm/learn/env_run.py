@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_weights, refuse_nonfinite
+from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_weights
 from bitcomm.errors import ConfigError
 from bitcomm.learn.env_config import EnvTrainConfig, is_env_config
 from bitcomm.learn.env_learner import EnvLearner
@@ -26,11 +26,13 @@ from bitcomm.learn.env_rollout import make_vec, play
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
+    finite_or_stop,
     has_checkpoint,
-    learner_state,
     prepare,
     read_json_object,
-    save_run_checkpoint,
+    restore_learner,
+    save_learner,
+    train_batches,
     write_config,
 )
 from bitcomm.run_lock import run_lock
@@ -54,61 +56,39 @@ def train_env(cfg: EnvTrainConfig, out: Path, resume: bool = False, progress: bo
 
 
 def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: bool) -> Path:
-    from tqdm import tqdm
-
     saved = prepare(cfg, out, resume)
     torch.manual_seed(cfg.seed)
     learner = EnvLearner(cfg, vec.layout)
     generator = torch.Generator().manual_seed(cfg.seed)
     prog = Progress()
     if saved is not None:
-        learner.policy.load_state_dict(saved["weights"]["policy"])
-        learner.critic.load_state_dict(saved["weights"]["critic"])
-        learner.opt_policy.load_state_dict(saved["opt_policy"])
-        learner.opt_critic.load_state_dict(saved["opt_critic"])
+        restore_learner(learner, saved)
         generator.set_state(saved["generator"])
         torch.set_rng_state(saved["torch_rng"])
         prog.restore(saved)
     write_config(cfg, out, {})
     logger = Logger(out, prog.batches if saved is not None else None)
 
-    def weights() -> dict[str, dict[str, torch.Tensor]]:
-        return {"policy": learner.policy.state_dict(), "critic": learner.critic.state_dict()}
+    def play_and_learn() -> dict[str, Any]:
+        t0 = time.perf_counter()
+        # rollout: batch k's episodes are fixed by (seed, k)
+        ro = play(vec, learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,)), generator)
+        # update
+        stats = learner.update(ro, generator)
+        learner.policy.obs_norm.update(ro.obs, ro.alive)  # after the update: one batch, one set of statistics
+        learner.critic.state_norm.update(ro.state, ro.valid)
+        finite_or_stop(out, learner, prog.episodes + len(ro.length))
+        prog.wall_s += time.perf_counter() - t0
+        row = prog.add_batch(ro.length, ro.team_return, int(ro.alive.sum()))
+        return {**row, "charts/team_return_rolling": float(np.mean(prog.recent_return)), **stats}
 
     def save() -> Path:
-        state = {
-            **prog.state(),
-            **learner_state(learner, generator),
-        }
-        return save_run_checkpoint(out, cfg, weights(), prog, state, metric="team_return")
+        return save_learner(out, cfg, learner, generator, prog, metric="team_return")
 
-    planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs
-    bar = tqdm(total=planned, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
-    last_save = time.monotonic()
-    try:
-        while prog.episodes < cfg.episodes:
-            t0 = time.perf_counter()
-            # rollout: batch k's episodes are fixed by (seed, k)
-            ro = play(vec, learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,)), generator)
-            # update
-            stats = learner.update(ro, generator)
-            learner.policy.obs_norm.update(ro.obs, ro.alive)  # after the update: one batch, one set of statistics
-            learner.critic.state_norm.update(ro.state, ro.valid)
-            refuse_nonfinite(out, prog.episodes + len(ro.length), **weights())
-            prog.wall_s += time.perf_counter() - t0
-            row = prog.add_batch(ro.length, ro.team_return, int(ro.alive.sum()))
-            row.update({"charts/team_return_rolling": float(np.mean(prog.recent_return)), **stats})
-            logger.log(row)
-            bar.update(len(ro.length))
-            bar.set_postfix(ret=f"{row['charts/team_return_rolling']:.2f}")
-            if time.monotonic() - last_save >= cfg.checkpoint_seconds and prog.episodes < cfg.episodes:
-                save()
-                last_save = time.monotonic()
-        path = save()
-    finally:
-        bar.close()
-        logger.close()
-    return path
+    def postfix(row: dict[str, Any]) -> dict[str, str]:
+        return {"ret": f"{row['charts/team_return_rolling']:.2f}"}
+
+    return train_batches(cfg, prog, logger, play_and_learn, save, postfix, progress)
 
 
 def env_run_config(path: Path | str) -> EnvTrainConfig | None:

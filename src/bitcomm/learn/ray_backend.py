@@ -39,14 +39,12 @@ from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
-    checkpoint_weights,
     finite_or_stop,
-    learner_state,
     oracle_level,
     prepare,
     read_config_json,
     restore_learner,
-    save_run_checkpoint,
+    save_learner,
     write_config,
 )
 from bitcomm.policies.networks import PolicyNet
@@ -248,12 +246,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
     weights = ray.put(_policy_weights(learner.policy))
 
     def save() -> Path:
-        state = {
-            **prog.state(),
-            **learner_state(learner, generator),
-            "next_batch": next_batch,
-        }
-        return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state)
+        return save_learner(out, cfg, learner, generator, prog, extra={"next_batch": next_batch})
 
     actors = Actors(cfg)
     planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -27,15 +28,14 @@ from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
-    checkpoint_weights,
     finite_or_stop,
     has_checkpoint,
-    learner_state,
     oracle_level,
     prepare,
     read_config_json,
     restore_learner,
-    save_run_checkpoint,
+    save_learner,
+    train_batches,
     write_config,
 )
 from bitcomm.run_lock import run_lock
@@ -65,8 +65,6 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = Tr
 
 
 def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
-    from tqdm import tqdm
-
     from bitcomm.learn.learner import Learner
     from bitcomm.learn.rollout import Collector
 
@@ -88,37 +86,21 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
     logger = Logger(out, prog.batches if saved is not None else None)
     n = cfg.task.env.n_agents
 
-    def save() -> Path:
-        state = {
-            **prog.state(),
-            **learner_state(learner, generator),
-        }
-        return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state)
+    def play_and_learn() -> dict[str, Any]:
+        t0 = time.perf_counter()
+        # rollout: batch k's episodes are fixed by (seed, k)
+        seed = np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,))
+        ro = collector.collect(learner.policy, seed, generator)
+        # update
+        stats = learner.update(ro, generator, progress=cfg.schedule_progress(prog.episodes))
+        finite_or_stop(out, learner, prog.episodes + len(ro.length))
+        prog.wall_s += time.perf_counter() - t0
+        row = prog.add_batch(ro.length, ro.team_return, int(ro.length.sum()) * n)
+        return {**row, "charts/success": float(ro.success.mean()), **stats}
 
-    planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs  # whole batches: the episodes that will be played
-    bar = tqdm(total=planned, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
-    last_save = time.monotonic()
-    path = None
-    try:
-        while prog.episodes < cfg.episodes:
-            t0 = time.perf_counter()
-            # rollout: batch k's episodes are fixed by (seed, k)
-            seed = np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,))
-            ro = collector.collect(learner.policy, seed, generator)
-            # update
-            stats = learner.update(ro, generator, progress=cfg.schedule_progress(prog.episodes))
-            finite_or_stop(out, learner, prog.episodes + len(ro.length))
-            prog.wall_s += time.perf_counter() - t0
-            row = prog.add_batch(ro.length, ro.team_return, int(ro.length.sum()) * n)
-            row.update({"charts/success": float(ro.success.mean()), **stats})
-            logger.log(row)
-            bar.update(len(ro.length))
-            bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")
-            if time.monotonic() - last_save >= cfg.checkpoint_seconds and prog.episodes < cfg.episodes:
-                save()
-                last_save = time.monotonic()
-        path = save()
-    finally:
-        bar.close()
-        logger.close()
-    return path
+    def postfix(row: dict[str, Any]) -> dict[str, str]:
+        return {"len": f"{row['charts/episode_length_rolling']:.1f}", "ret": f"{np.mean(prog.recent_return):.2f}"}
+
+    return train_batches(
+        cfg, prog, logger, play_and_learn, lambda: save_learner(out, cfg, learner, generator, prog), postfix, progress
+    )

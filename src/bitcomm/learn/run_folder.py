@@ -19,7 +19,9 @@ import json
 import platform
 import subprocess
 import sys
+import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -86,6 +88,12 @@ class RunConfig(Protocol):
     def seed(self) -> int: ...
     @property
     def keep_checkpoints(self) -> int: ...
+    @property
+    def episodes(self) -> int: ...
+    @property
+    def num_envs(self) -> int: ...
+    @property
+    def checkpoint_seconds(self) -> float: ...
     def to_dict(self) -> dict[str, Any]: ...
 
 
@@ -324,6 +332,54 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
     if (out / "metrics.csv").is_file():
         read_metrics(out / "metrics.csv", int(state["batches"]))
     return {**state, "weights": weights, "info": info}
+
+
+def save_learner(
+    out: Path,
+    cfg: RunConfig,
+    learner: Any,
+    generator: torch.Generator,
+    prog: Progress,
+    metric: str = "episode_length",
+    extra: dict[str, Any] | None = None,
+) -> Path:
+    """A checkpoint of a trainer with one learner: its weights, optimizers and random streams, the counters,
+    and what else the trainer needs to resume (`extra`)."""
+    state = {**prog.state(), **learner_state(learner, generator), **(extra or {})}
+    return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state, metric)
+
+
+def train_batches(
+    cfg: RunConfig,
+    prog: Progress,
+    logger: Logger,
+    play_and_learn: Callable[[], dict[str, Any]],
+    save: Callable[[], Path],
+    postfix: Callable[[dict[str, Any]], dict[str, str]],
+    progress: bool = True,
+) -> Path:
+    """The synchronous trainers' loop (the grid's and a wrapped env's): `play_and_learn()` plays and learns
+    one batch, counts it in `prog` and returns its log row; a checkpoint every `checkpoint_seconds` and
+    one at the end (returned); the progress bar shows `postfix(row)`. Closes the log however it ends."""
+    from tqdm import tqdm
+
+    planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs  # whole batches: the episodes that will be played
+    bar = tqdm(total=planned, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
+    last_save = time.monotonic()
+    try:
+        while prog.episodes < cfg.episodes:
+            before = prog.episodes
+            row = play_and_learn()
+            logger.log(row)
+            bar.update(prog.episodes - before)
+            bar.set_postfix(**postfix(row))
+            if time.monotonic() - last_save >= cfg.checkpoint_seconds and prog.episodes < cfg.episodes:
+                save()
+                last_save = time.monotonic()
+        return save()
+    finally:
+        bar.close()
+        logger.close()
 
 
 def finite_or_stop(out: Path, learner: Any, episodes: int) -> None:
