@@ -11,13 +11,14 @@ checks happen between chunks; evaluation time is not counted as training time.
 Seeds run `--jobs` at a time, each in its own process with `--threads` torch threads.
 The last line printed is one JSON object.
 
-    python benchmarks/solve.py --size 4 --bits 4 --minutes 5            # rung 1
-    python benchmarks/solve.py --minutes 15                             # rung 2 (the paper's 10x10)
-    python benchmarks/solve.py --minutes 15 --threads 2 --jobs 1        # each seed alone on 2 cores
-    python benchmarks/solve.py --minutes 45                             # rung 3
+The default recipe decays its learning rates over the budget, so it needs `--max-episodes` (the
+schedule's horizon, shared by all chunks of a seed).
+
+    python benchmarks/solve.py --size 4 --bits 4 --minutes 1 --max-episodes 30000     # rung 1
+    python benchmarks/solve.py --minutes 15 --max-episodes 200000 --chunk 8192        # rung 2 (the paper's 10x10)
+    python benchmarks/solve.py --minutes 15 --max-episodes 200000 --threads 2 --jobs 1  # each seed alone on 2 cores
     python benchmarks/solve.py --recipe paper --minutes 15              # the paper's own recipe
-    python benchmarks/solve.py --set gamma=0.8 --set lr=3e-4            # any learning option (bitcomm train --help)
-    python benchmarks/solve.py --set anneal_lr=true --max-episodes 200000   # rates decay over 200,000 episodes
+    python benchmarks/solve.py --set anneal_lr=false --set lr=3e-4      # any learning option (bitcomm train --help)
 """
 
 from __future__ import annotations
@@ -168,7 +169,7 @@ def main() -> None:
         "--max-episodes",
         type=int,
         default=MAX_EPISODES,
-        help="episode budget per seed (and, with --set anneal_lr=true, the horizon of the learning-rate schedule)",
+        help="episode budget per seed (and, where the recipe anneals, the horizon of the learning-rate schedule)",
     )
     ap.add_argument("--chunk", type=int, default=1024, help="episodes between checks")
     ap.add_argument("--eval-episodes", type=int, default=2000)
@@ -190,17 +191,20 @@ def main() -> None:
             ap.error(f"--set {item!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(options))}")
     try:  # bad input is one line before any seed starts
         overrides = [(name, options[name].parse(value)) for name, value in pairs]
-        if dict(overrides).get("anneal_lr") and "anneal_episodes" not in dict(overrides):
-            if a.max_episodes == MAX_EPISODES:
-                ap.error("--set anneal_lr=true needs --max-episodes N: the episodes the rates decay over")
-            overrides.append(("anneal_episodes", a.max_episodes))  # one schedule across the chunks
         for name in ("seeds", "jobs", "threads", "chunk", "eval_episodes", "max_episodes"):
             check_int(name, getattr(a, name), 1)
         check_number("minutes", a.minutes, 0.0, strict=True)
         if a.bits is None:
             a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
         task = TaskConfig(EnvConfig(size=a.size), ChannelConfig(bits=a.bits))
-        make_train_config(a.recipe, task, estimator=a.estimator, messages=a.messages, **dict(overrides))
+        cfg = make_train_config(a.recipe, task, estimator=a.estimator, messages=a.messages, **dict(overrides))
+        if (cfg.anneal_lr or cfg.anneal_entropy) and not cfg.anneal_episodes:
+            if a.max_episodes == MAX_EPISODES:
+                ap.error(
+                    f"recipe {a.recipe} anneals over the budget: give --max-episodes N (the episodes its schedules "
+                    "span, e.g. 200000 on 10x10), or --set anneal_lr=false"
+                )
+            overrides.append(("anneal_episodes", a.max_episodes))  # one schedule across the chunks
     except ConfigError as err:
         ap.error(str(err))
     out = a.out or Path("runs/solve") / f"{a.recipe}-{a.size}x{a.size}-{time.strftime('%Y%m%d-%H%M%S')}"

@@ -133,7 +133,26 @@ def test_the_schedule_follows_anneal_episodes_when_a_run_is_trained_in_pieces():
     assert make_train_config("reinforced", TINY, episodes=250, anneal_lr=True).schedule_progress(200) == 0.8
     assert piece.schedule_progress(5000) == 1.0  # played past the schedule: the rates stay at zero
     with pytest.raises(ConfigError, match="anneal-episodes"):
-        make_train_config("reinforced", TINY, anneal_episodes=1000)  # without --anneal-lr it would do nothing
+        make_train_config("reinforced", TINY, anneal_lr=False, anneal_episodes=1000)  # nothing would anneal
+
+
+@pytest.mark.parametrize("anneal", [True, False])
+def test_anneal_entropy_scales_the_regularisers_by_the_budget_left(anneal):
+    """The entropy bonuses and the uniform-move pull follow the schedule; the policy-gradient term does not."""
+    cfg = make_train_config("reinforced", TINY, num_envs=4, mode="sync", anneal_entropy=anneal)
+    learner, collector = Learner(cfg), Collector(TINY, 4)
+    rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    base = {"entropy_move": cfg.entropy_move, "entropy_message": cfg.entropy_message, "uniform_move": cfg.uniform_move}
+    for progress in (0.25, 1.0):
+        learner.update(rollout, torch.Generator().manual_seed(0), progress=progress)
+        weights = {t.name: t.weight for t in learner.terms if t.name in base}
+        assert weights == pytest.approx({k: w * (1 - progress) if anneal else w for k, w in base.items()})
+        assert [t.name for t in learner.terms][0] == "policy_gradient"
+
+
+def test_the_default_recipe_decays_its_learning_rates_over_the_budget():
+    assert make_train_config("reinforced", TINY).anneal_lr
+    assert not make_train_config("supervised", TINY).anneal_lr  # kept as measured
 
 
 def test_rollout_holds_whole_first_episodes():

@@ -90,12 +90,16 @@ class TrainConfig:
     running preference (bitcomm.learn.codebook): a code with no two goals on one message, which a relaxed channel
     does not find (one goal per message where 2^bits >= size * size)."""
     anneal_lr: bool = False
-    """Decay every learning rate linearly to zero over the budget (`episodes`), as CleanRL's PPO does:
-    the last updates are then too small to undo a converged policy (the late relapses of
-    docs/results.md). The schedule follows `episodes`, so resuming with a larger budget raises it again."""
+    """Decay every learning rate linearly to zero over the budget (`episodes`), as CleanRL's PPO does
+    (on in the `reinforced` recipe): the last updates are then too small to undo a converged policy (the
+    late relapses of docs/results.md). The schedule follows `episodes`, so resuming with a larger budget
+    raises it again."""
+    anneal_entropy: bool = False
+    """Decay the entropy bonuses and the uniform-move pull linearly to zero on `anneal_lr`'s schedule: the
+    policies end nearer deterministic, so greedy play can follow what sampled play learned."""
     anneal_episodes: int = 0
-    """Episodes over which `anneal_lr` decays the rates (0: the budget, `episodes`): a run trained in pieces
-    (each resumed with a larger budget, as benchmarks/solve.py does) keeps one schedule."""
+    """Episodes over which `anneal_lr` and `anneal_entropy` decay (0: the budget, `episodes`): a run trained
+    in pieces (each resumed with a larger budget, as benchmarks/solve.py does) keeps one schedule."""
     map_lr: float = 0.01
     """Adam learning rate of the message-map decoder (ModelConfig.message_map), which starts at zero
     (a uniform map); a decoder is a small linear read-out that the policy's rate would fit slowly."""
@@ -120,8 +124,10 @@ class TrainConfig:
         check_int("train_max_steps", self.train_max_steps, 0)  # 0: the task's max_steps
         check_int("staleness", self.staleness, 0)
         check_int("anneal_episodes", self.anneal_episodes, 0)
-        if self.anneal_episodes and not self.anneal_lr:
-            raise bad_value("anneal-episodes", self.anneal_episodes, "acts only with --anneal-lr; leave it at 0")
+        if self.anneal_episodes and not (self.anneal_lr or self.anneal_entropy):
+            raise bad_value(
+                "anneal-episodes", self.anneal_episodes, "acts only with --anneal-lr or --anneal-entropy; leave it at 0"
+            )
         if self.staleness and self.backend != "ray":
             raise bad_value("staleness", self.staleness, "acts only on --backend ray; leave it at 0")
         for name in ("workers", "episodes", "num_envs", "epochs", "minibatches", "keep_checkpoints"):
@@ -163,7 +169,7 @@ class TrainConfig:
         return dataclasses.replace(self.task, env=dataclasses.replace(self.task.env, max_steps=limit))
 
     def schedule_progress(self, episodes: int) -> float:
-        """The fraction of the learning-rate schedule (`anneal_lr`) done after `episodes` episodes, at most 1."""
+        """The fraction of the schedules (`anneal_lr`, `anneal_entropy`) done after `episodes` episodes, at most 1."""
         return min(1.0, episodes / (self.anneal_episodes or self.episodes))
 
     @property

@@ -63,11 +63,14 @@ class Learner:
         self.slot_goal = self.observed[self.slot_senders.clamp(min=0)]  # (n, slots): whose goal each slot names
         self.routes = Routes(self.slot_senders, self.observed, self.slot_goal, task.channel.delay, task.env.size)
         self.codebook = CodeBook(task.env.size**2, self.policy.head) if cfg.code_coef > 0 else None
+        self.progress = 0.0  # of the schedules, as of the last update
 
     @property
     def terms(self) -> list[Term]:
-        """The objective terms of the policy, from the config (read per step: A3C shares the code book)."""
-        return policy_terms(self.cfg, self.codebook)
+        """The objective terms of the policy, from the config (read per step: A3C shares the code book), the
+        regularisers scaled down as the budget is played with `anneal_entropy`."""
+        scale = max(0.0, 1.0 - self.progress) if self.cfg.anneal_entropy else 1.0
+        return policy_terms(self.cfg, self.codebook, scale)
 
     # ---------------------------------------------------------------- critic
     def critic_values(
@@ -120,8 +123,10 @@ class Learner:
 
     # ---------------------------------------------------------------- update
     def update(self, ro: Rollout, generator: torch.Generator | None = None, progress: float = 0.0) -> dict[str, float]:
-        """One update on the batch `ro`; `progress` is the fraction of the budget played so far (`anneal_lr`)."""
+        """One update on the batch `ro`; `progress` is the fraction of the budget played so far (`anneal_lr`,
+        `anneal_entropy`)."""
         cfg = self.cfg
+        self.progress = progress
         if cfg.anneal_lr:
             for opt, bases in zip((self.opt_policy, self.opt_critic), self.base_lrs, strict=True):
                 for group, base in zip(opt.param_groups, bases, strict=True):

@@ -304,16 +304,17 @@ class CodeTerm:
 
 
 # ------------------------------------------------------------------------------------------------ recipe
-def policy_terms(cfg: TrainConfig, codebook: CodeBook | None) -> list[Term]:
+def policy_terms(cfg: TrainConfig, codebook: CodeBook | None, regulariser_scale: float = 1.0) -> list[Term]:
     """The terms `cfg` asks for, in the order they are evaluated: the reinforcement terms (the entropy
-    bonuses always, for their figures), then each auxiliary term whose weight is positive."""
+    bonuses always, for their figures; they and the uniform-move pull weighted by `regulariser_scale` times
+    the config's weight), then each auxiliary term whose weight is positive."""
     terms: list[Term] = [
         PolicyGradient(cfg.clip),
-        Entropy("move", cfg.entropy_move),
-        Entropy("message", cfg.entropy_message),
+        Entropy("move", cfg.entropy_move * regulariser_scale),
+        Entropy("message", cfg.entropy_message * regulariser_scale),
     ]
     if cfg.uniform_move > 0:
-        terms.append(UniformMove(cfg.uniform_move))
+        terms.append(UniformMove(cfg.uniform_move * regulariser_scale))
     if cfg.goal_coef > 0:
         terms.append(GoalTerm(cfg.goal_coef, cfg.channel_noise))
     if cfg.seen_coef > 0:

@@ -7,8 +7,9 @@ Plain data with no heavy imports, so the command line can list the names without
   estimator's policy-gradient term plus the entropy terms; critics see the full state (as the
   paper's V1/V2 do). What it adds to the paper is engineering that leaves the estimators' role
   intact: batched synchronous updates with PPO-style reuse and clipping, advantage normalisation,
-  gamma 0.5, shorter training episodes, observation features and a network shaped for the grid
-  (each option named and measured in docs/tuning.md).
+  gamma 0.5, shorter training episodes, learning rates decayed to zero over the budget
+  (`anneal_lr`), observation features and a network shaped for the grid (each option named and
+  measured in docs/tuning.md).
 - `supervised`: `reinforced` plus three auxiliary losses that hand the sender a protocol (a
   self-labelled code book, a privileged goal label for the receiver's message decoder, and the
   sender's grounding in the goal it sees). Fast, but its messages are supervised: it bypasses both
@@ -42,6 +43,7 @@ _REINFORCED: dict[str, Any] = dict(
     coords=False,
     plane_coords=True,
     message_map=False,
+    anneal_lr=True,
 )
 
 _SUPERVISED: dict[str, Any] = dict(
@@ -56,6 +58,7 @@ _SUPERVISED: dict[str, Any] = dict(
     encoder="conv",
     coords=True,
     message_map=True,
+    anneal_lr=False,
 )
 """The former `fast` recipe, as measured in docs/tuning.md sessions 1-7."""
 
