@@ -12,8 +12,11 @@ each with the whole machine (`--threads` torch threads for synchronous rows; an 
 `workers` processes), so their seconds compare. Each row's result is kept in `<out>/<row>/result.json`: a
 stopped ablation rerun with the same flags skips finished rows.
 
-    python benchmarks/ablation.py --size 4 --bits 4 --minutes 1.5                 # from paper, each fix on in turn
-    python benchmarks/ablation.py --base reinforced --target paper --size 4 --bits 4 --minutes 1.5
+A row whose options decay the learning rates (`anneal_lr`) needs `--max-episodes N`: its schedule's horizon and
+its episode budget (a row that does not anneal trains for `--minutes` only, as before).
+
+    python benchmarks/ablation.py --size 4 --bits 4 --minutes 1 --max-episodes 30000   # from paper, each fix on
+    python benchmarks/ablation.py --base reinforced --target paper --size 4 --bits 4 --minutes 1 --max-episodes 30000
 """
 
 from __future__ import annotations
@@ -92,12 +95,17 @@ def main() -> None:
     ap.add_argument("--chunk", type=int, default=512, help="episodes between checks")
     ap.add_argument("--threads", type=int, default=2, help="torch threads of a synchronous row")
     ap.add_argument("--only", default="", help="comma-separated row names (default: all)")
+    ap.add_argument(
+        "--max-episodes", type=int, default=None, help="horizon and episode budget of a row that anneals its rates"
+    )
     ap.add_argument("--out", type=Path, default=None, help="default runs/ablation/<base>-to-<target>-<size>x<size>")
     a = ap.parse_args()
     if a.base == a.target:
         ap.error(f"--target {a.target!r}: must differ from --base")
     if a.minutes <= 0 or a.chunk < 1 or a.threads < 1 or a.size < 2 or a.bits < 1:
         ap.error("--minutes must be > 0; --chunk, --threads, --bits >= 1; --size >= 2")
+    if a.max_episodes is not None and a.max_episodes < 1:
+        ap.error(f"--max-episodes {a.max_episodes}: must be >= 1")
     out = a.out or Path("runs/ablation") / f"{a.base}-to-{a.target}-{a.size}x{a.size}"
     plan = rows(a.base, a.target)
     if a.only:
@@ -107,17 +115,24 @@ def main() -> None:
         if unknown:
             ap.error(f"--only {unknown[0]!r}: not a row; rows are {', '.join(names)}")
         plan = [(n, c) for n, c in plan if n in wanted]
+    annealing = [n for n, c in plan if {**RECIPES[a.base], **c}.get("anneal_lr")]
+    if annealing and a.max_episodes is None:
+        ap.error(f"rows {', '.join(annealing)} decay their rates over a budget: give --max-episodes N (their horizon)")
     results = []
     for name, change in plan:
         folder = out / name
         saved = folder / "result.json"
         settings = {"recipe": a.base, "set": change, "size": a.size, "bits": a.bits, "seed": a.seed,
                     "minutes": a.minutes, "chunk": a.chunk, "threads": a.threads}  # fmt: skip
+        budget: dict[str, Any] = {"set": list(change.items())}
+        if name in annealing:  # one schedule over the row's chunks, ending at its episode budget
+            settings["max_episodes"] = a.max_episodes
+            budget["set"].append(("anneal_episodes", a.max_episodes))
         if saved.is_file() and json.loads(saved.read_text())["settings"] == json.loads(json.dumps(settings)):
             result = json.loads(saved.read_text())["result"]
         else:
-            args = {**settings, "estimator": "improved", "messages": "bitwise", "max_episodes": 10**9,
-                    "eval_episodes": 2000, "out": str(folder), "set": list(change.items())}  # fmt: skip
+            args = {**settings, "estimator": "improved", "messages": "bitwise", "eval_episodes": 2000,
+                    "max_episodes": settings.get("max_episodes", 10**9), "out": str(folder), **budget}  # fmt: skip
             result = solve_seed(args, a.seed)
             folder.mkdir(parents=True, exist_ok=True)
             saved.write_text(json.dumps({"settings": settings, "result": result}, indent=1) + "\n")

@@ -63,6 +63,30 @@ def test_ablation_runs_a_row_and_resumes_from_its_result(tmp_path: Path) -> None
     assert bad.returncode == 2 and "nosuch" in bad.stderr.strip().splitlines()[-1]
 
 
+def test_an_annealing_ablation_row_needs_and_uses_a_horizon(tmp_path: Path) -> None:
+    """A row that decays its rates is refused in one line without --max-episodes; with it, the row's run
+    anneals over exactly that many episodes and the budget is recorded with the row's result."""
+    argv = [sys.executable, "benchmarks/ablation.py", "--base", "reinforced", "--target", "paper", "--size", "3",
+            "--bits", "4", "--minutes", "1", "--chunk", "16", "--threads", "1", "--only", "reinforced",
+            "--out", str(tmp_path)]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    refused = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=60)
+    assert refused.returncode == 2 and "--max-episodes" in refused.stderr.strip().splitlines()[-1]
+    done = subprocess.run([*argv, "--max-episodes", "32"], cwd=ROOT, capture_output=True, text=True, env=env,
+                          timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    saved = json.loads((tmp_path / "reinforced" / "result.json").read_text())
+    assert saved["settings"]["max_episodes"] == 32
+    config = json.loads((tmp_path / "reinforced" / "seed0" / "config.json").read_text())
+    assert config["anneal_lr"] and config["anneal_episodes"] == 32
+
+
+def test_solve_asks_for_the_horizon_of_an_annealing_recipe() -> None:
+    argv = [sys.executable, "benchmarks/solve.py", "--size", "3", "--bits", "4"]
+    refused = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "--max-episodes" in refused.stderr.strip().splitlines()[-1]
+
+
 def test_greedy_split_plays_a_run_four_ways(tmp_path: Path) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     run = str(tmp_path / "run")
