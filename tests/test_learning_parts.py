@@ -222,3 +222,23 @@ def test_reused_clip_factors_make_the_same_step_in_one_backward_pass():
     reused, same = grads_after(factors)
     assert same == factors
     assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(measured, reused, strict=True))
+
+
+def test_the_cells_encoder_reads_a_one_hot_plane_as_its_row_its_column_and_its_cell():
+    from bitcomm.policies.networks import Marginals
+
+    plane = torch.zeros(1, 1, 3, 3)
+    plane[0, 0, 1, 2] = 1.0
+    row, column, cell = [0, 1, 0], [0, 0, 1], [0, 0, 0, 0, 0, 1, 0, 0, 0]
+    assert Marginals()(plane).tolist() == [row + column]
+    assert Marginals(cells=True)(plane).tolist() == [row + column + cell]
+
+
+@pytest.mark.parametrize("encoder", ["conv", "marginals", "cells"])
+@pytest.mark.parametrize("message_map", [False, True])
+def test_every_encoder_trains_with_the_recipe(encoder, message_map):
+    cfg = make_train_config("reinforced", TINY, num_envs=4, encoder=encoder, message_map=message_map)
+    learner, collector = Learner(cfg), Collector(TINY, 4)
+    rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    stats = learner.update(rollout, torch.Generator().manual_seed(0))
+    assert all(np.isfinite(v) for v in stats.values())

@@ -19,7 +19,7 @@ from bitcomm.envs.core import N_MOVES
 from bitcomm.errors import bad_value, check_int
 from bitcomm.policies.heads import MessageHead, make_head
 
-ENCODERS = ("conv", "marginals")
+ENCODERS = ("conv", "marginals", "cells")
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,9 @@ class ModelConfig:
     """How the policy and the critic read observation planes: `conv`, a stack of convolutions (the paper's
     Fig. 2); `marginals`, each plane's row sums and column sums (a one-hot plane's row and column, each as a
     one-hot vector) straight into the fully connected layers, which loses nothing of a plane that marks one
-    cell and costs a fraction of a convolution on a CPU."""
+    cell and costs a fraction of a convolution on a CPU; `cells`, the marginals and every cell of each plane:
+    each cell then has weights of its own, so a sender can give a cell any code, not only one composed of a
+    code for its row and one for its column (which needs 8 bits on a 10x10 grid)."""
     conv_channels: tuple[int, ...] = (8, 16)
     """Channels of the 3x3 convolutions (each of stride `conv_stride`), with `encoder` `conv`."""
     conv_stride: int = 2
@@ -69,9 +71,12 @@ class ModelConfig:
 
 
 def _conv_stack(in_channels: int, cfg: ModelConfig, size: int) -> tuple[nn.Sequential, int]:
-    """The plane encoder and its output width: convolutions, or (`marginals`) row and column sums."""
+    """The plane encoder and its output width: convolutions, or (`marginals`) row and column sums, or (`cells`)
+    those and the planes' cells."""
     if cfg.encoder == "marginals":
         return nn.Sequential(Marginals()), in_channels * 2 * size
+    if cfg.encoder == "cells":
+        return nn.Sequential(Marginals(cells=True)), in_channels * (2 * size + size * size)
     layers: list[nn.Module] = []
     c, s, stride = in_channels, size, cfg.conv_stride
     for out in cfg.conv_channels:
@@ -81,10 +86,16 @@ def _conv_stack(in_channels: int, cfg: ModelConfig, size: int) -> tuple[nn.Seque
 
 
 class Marginals(nn.Module):
-    """`(N, P, S, S)` planes -> `(N, P * 2S)`: each plane's sums over columns (per row) and over rows."""
+    """`(N, P, S, S)` planes -> `(N, P * 2S)`: each plane's sums over columns (per row) and over rows; with
+    `cells`, `(N, P * (2S + S * S))`: each plane's marginals followed by its cells."""
+
+    def __init__(self, cells: bool = False) -> None:
+        super().__init__()
+        self.cells = cells
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([x.sum(3), x.sum(2)], 2).flatten(1)
+        parts = [x.sum(3), x.sum(2), x.flatten(2)] if self.cells else [x.sum(3), x.sum(2)]
+        return torch.cat(parts, 2).flatten(1)
 
 
 def _coord_planes(size: int) -> torch.Tensor:
@@ -135,7 +146,7 @@ class PolicyNet(nn.Module):
         seen = torch.cat([x, self.coords.expand(x.shape[0], -1, -1, -1)], 1) if self.coord_planes else x
         if self.message_map is None:
             features = self.conv(seen)
-        elif self.cfg.encoder == "marginals":
+        elif self.cfg.encoder != "conv":  # marginals (and cells): no convolution to save
             maps = self._decoded_maps(received_encoded, x.shape)
             features = self.conv(torch.cat([seen, maps], 1))
         else:
