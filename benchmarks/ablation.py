@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -133,6 +134,7 @@ def main() -> None:
         else:
             args = {**settings, "estimator": "improved", "messages": "bitwise", "eval_episodes": 2000,
                     "max_episodes": settings.get("max_episodes", 10**9), "out": str(folder), **budget}  # fmt: skip
+            shutil.rmtree(folder / f"seed{a.seed}", ignore_errors=True)  # a row left unfinished or by other flags
             result = solve_seed(args, a.seed)
             folder.mkdir(parents=True, exist_ok=True)
             saved.write_text(json.dumps({"settings": settings, "result": result}, indent=1) + "\n")

@@ -184,3 +184,25 @@ def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.C
     assert rc == 2
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path) -> None:
+    """An alarm or a Ctrl-C that reaches only the parent (as a scheduler sends it) ends the study at once,
+    its running runs stopped rather than waited for; their checkpoints let the next call resume them."""
+    import signal
+    import time
+
+    def interrupt(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    runs = ["--episodes", "40000", "--seeds", "2", "--techniques", "improved-bitwise"]  # a minute or more each
+    argv = ["compare", "--size", "4", "--bits", "4", *runs, "--jobs", "2", "--out", str(tmp_path)]
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    signal.alarm(10)
+    start = time.monotonic()
+    try:
+        code = main(argv)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert code != 0 and time.monotonic() - start < 40

@@ -80,6 +80,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         code_coef=0.0,
         uniform_move=0.0,
         entropy_message=0.001,
+        anneal_lr=False,
         encoder="conv",
         coords=False,
         plane_coords=False,

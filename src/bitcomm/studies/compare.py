@@ -403,8 +403,10 @@ def execute_all(
             for k, future in enumerate(as_completed(futures), 1):
                 run, status = futures[future], future.result()
                 log(f"[{k}/{len(todo)}] {describe(run, status, cfg)}")
-        except BaseException:
+        except BaseException:  # Ctrl-C or an alarm in this process only: stop the running runs, not wait for them
             pool.shutdown(wait=False, cancel_futures=True)
+            for process in list((getattr(pool, "_processes", None) or {}).values()):  # no public way before 3.14
+                process.terminate()  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
             raise
 
 
