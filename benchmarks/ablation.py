@@ -125,15 +125,15 @@ def main() -> None:
         saved = folder / "result.json"
         settings = {"recipe": a.base, "set": change, "size": a.size, "bits": a.bits, "seed": a.seed,
                     "minutes": a.minutes, "chunk": a.chunk, "threads": a.threads}  # fmt: skip
-        budget: dict[str, Any] = {"set": list(change.items())}
+        options = list(change.items())
         if name in annealing:  # one schedule over the row's chunks, ending at its episode budget
             settings["max_episodes"] = a.max_episodes
-            budget["set"].append(("anneal_episodes", a.max_episodes))
+            options.append(("anneal_episodes", a.max_episodes))
         if saved.is_file() and json.loads(saved.read_text())["settings"] == json.loads(json.dumps(settings)):
             result = json.loads(saved.read_text())["result"]
         else:
-            args = {**settings, "estimator": "improved", "messages": "bitwise", "eval_episodes": 2000,
-                    "max_episodes": settings.get("max_episodes", 10**9), "out": str(folder), **budget}  # fmt: skip
+            args = {**settings, "estimator": "improved", "messages": "bitwise", "eval_episodes": 2000, "set": options,
+                    "max_episodes": settings.get("max_episodes", 10**9), "out": str(folder)}  # fmt: skip
             shutil.rmtree(folder / f"seed{a.seed}", ignore_errors=True)  # a row left unfinished or by other flags
             result = solve_seed(args, a.seed)
             folder.mkdir(parents=True, exist_ok=True)

@@ -198,7 +198,7 @@ def main() -> None:
             a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
         task = TaskConfig(EnvConfig(size=a.size), ChannelConfig(bits=a.bits))
         cfg = make_train_config(a.recipe, task, estimator=a.estimator, messages=a.messages, **dict(overrides))
-        if (cfg.anneal_lr or cfg.anneal_entropy) and not cfg.anneal_episodes:
+        if cfg.anneals and not cfg.anneal_episodes:
             if a.max_episodes == MAX_EPISODES:
                 ap.error(
                     f"recipe {a.recipe} anneals over the budget: give --max-episodes N (the episodes its schedules "

@@ -124,7 +124,7 @@ class TrainConfig:
         check_int("train_max_steps", self.train_max_steps, 0)  # 0: the task's max_steps
         check_int("staleness", self.staleness, 0)
         check_int("anneal_episodes", self.anneal_episodes, 0)
-        if self.anneal_episodes and not (self.anneal_lr or self.anneal_entropy):
+        if self.anneal_episodes and not self.anneals:
             raise bad_value(
                 "anneal-episodes", self.anneal_episodes, "acts only with --anneal-lr or --anneal-entropy; leave it at 0"
             )
@@ -167,6 +167,11 @@ class TrainConfig:
         if limit == 0 or limit >= self.task.env.max_steps:
             return self.task
         return dataclasses.replace(self.task, env=dataclasses.replace(self.task.env, max_steps=limit))
+
+    @property
+    def anneals(self) -> bool:
+        """Whether anything follows the schedule (`anneal_lr`, `anneal_entropy`), so that its horizon matters."""
+        return self.anneal_lr or self.anneal_entropy
 
     def schedule_progress(self, episodes: int) -> float:
         """The fraction of the schedules (`anneal_lr`, `anneal_entropy`) done after `episodes` episodes, at most 1."""
