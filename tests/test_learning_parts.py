@@ -242,3 +242,24 @@ def test_every_encoder_trains_with_the_recipe(encoder, message_map):
     rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     stats = learner.update(rollout, torch.Generator().manual_seed(0))
     assert all(np.isfinite(v) for v in stats.values())
+
+
+@pytest.mark.parametrize("encoder", ["conv", "marginals", "cells"])
+@pytest.mark.parametrize("estimator", ["standard", "improved"])
+def test_reading_the_observations_once_per_update_makes_the_same_update(encoder, estimator, monkeypatch):
+    """The parameter-free encoders are read once per batch (`Learner.read_features`): a speed-up, not a change."""
+    from bitcomm.learn import learner as learner_module
+
+    def trained(read_once: bool) -> list[torch.Tensor]:
+        torch.manual_seed(0)
+        cfg = make_train_config("reinforced", TINY, num_envs=8, encoder=encoder, estimator=estimator)
+        learner = Learner(cfg)
+        if not read_once:
+            monkeypatch.setattr(learner, "read_features", lambda ro: learner_module._Features(None, None))
+        generator = torch.Generator().manual_seed(0)
+        learner.update(Collector(TINY, 8).collect(learner.policy, np.random.SeedSequence(0), generator), generator)
+        return [p.detach().clone() for p in [*learner.policy.parameters(), *learner.critic.parameters()]]
+
+    learner = Learner(make_train_config("reinforced", TINY, encoder=encoder, estimator=estimator))
+    assert learner.policy.fixed_features == learner.critic.fixed_features == (encoder != "conv")
+    assert all(torch.equal(a, b) for a, b in zip(trained(True), trained(False), strict=True))

@@ -1,5 +1,6 @@
 """One learning update from a batch of whole episodes, shared by the sync and A3C trainers.
 
+# features   the networks' parameter-free reading of the observations, once per batch (marginals encoders)
 # baselines  critics evaluated once per batch (V1 for standard, V2 with masks for improved)
 # advantages the estimator chosen by name (bitcomm.learn.estimators), optionally normalised
 # update     per minibatch: the recipe's objective terms (bitcomm.learn.objectives) summed per clip
@@ -22,6 +23,16 @@ from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
 from bitcomm.learn.objectives import Routes, StepBatch, Term, clip_groups, critic_mse, policy_terms
 from bitcomm.learn.rollout import Rollout
 from bitcomm.policies.networks import CriticNet, PolicyNet
+
+
+class _Features(NamedTuple):
+    """The networks' reading of a batch's observations where it has no parameters (`fixed_features`: every
+    encoder but `conv`), computed once per update instead of once per pass: the 4 epochs of the default recipe
+    would otherwise sum the same planes 9 times. `policy (T, B, n, flat)`, `critic (T, B, flat)`, 0 at invalid
+    steps; None for a network whose encoder learns."""
+
+    policy: torch.Tensor | None
+    critic: torch.Tensor | None
 
 
 class _Forward(NamedTuple):
@@ -50,8 +61,8 @@ class Learner:
         decoder = list(self.policy.message_map.parameters()) if self.policy.message_map is not None else []
         rest = [p for p in self.policy.parameters() if all(p is not d for d in decoder)]
         groups = [{"params": rest}] + ([{"params": decoder, "lr": cfg.map_lr}] if decoder else [])
-        self.opt_policy = torch.optim.Adam(groups, lr=cfg.lr)
-        self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+        self.opt_policy = torch.optim.Adam(groups, lr=cfg.lr, foreach=True)
+        self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr, foreach=True)
         self.base_lrs = [[g["lr"] for g in opt.param_groups] for opt in (self.opt_policy, self.opt_critic)]
         self.estimator = get_estimator(cfg.estimator)
         rec = task.recipient_matrix
@@ -83,13 +94,30 @@ class Learner:
     ) -> torch.Tensor:
         """V for M samples x k queries: `state (M, 2n, S, S)`, `moves (M, n)`, `received (M, n, slots, K)`,
         `viewpoint (k,)`, `given (k, n)` -> `(M, k)`."""
-        M, k = state.shape[0], viewpoint.shape[0]
+        return self._values(self.critic.state_features(state), moves, received, viewpoint, given)
+
+    def _values(
+        self,
+        features: torch.Tensor,
+        moves: torch.Tensor,
+        received: torch.Tensor,
+        viewpoint: torch.Tensor,
+        given: torch.Tensor,
+    ) -> torch.Tensor:
+        """`critic_values` from the critic's state features `(M, flat)`."""
+        M, k = features.shape[0], viewpoint.shape[0]
         rep = torch.arange(M).repeat_interleave(k)
         vp = viewpoint.repeat(M)
         rec = received[rep, vp] if self.critic.with_message else None
-        features = self.critic.state_features(state)
         v = self.critic.value(features[rep], vp, moves[rep], given.repeat(M, 1), rec)
         return v.view(M, k)
+
+    def _state_features(
+        self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, features: _Features | None
+    ) -> torch.Tensor:
+        if features is not None and features.critic is not None:
+            return features.critic[it, ib]
+        return self.critic.state_features(ro.state[it, ib])
 
     def _action_queries(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Agent j's action baseline: centred on j, every other action given."""
@@ -100,26 +128,53 @@ class Learner:
         return self.recipient_of, self.not_recipient
 
     @torch.no_grad()
-    def baselines(self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def baselines(
+        self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, features: _Features | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         T, B = ro.valid.shape
-        state, moves, received = ro.state[it, ib], ro.moves[it, ib], ro.received[it, ib]
+        state, moves, received = self._state_features(ro, it, ib, features), ro.moves[it, ib], ro.received[it, ib]
         b_action = torch.zeros(T, B, self.n)
-        b_action[it, ib] = self.critic_values(state, moves, received, *self._action_queries())
+        b_action[it, ib] = self._values(state, moves, received, *self._action_queries())
         if self.single_recipient:
             b_message = b_action[:, :, self.recipient_of]
         else:
             b_message = torch.zeros(T, B, self.n)
-            b_message[it, ib] = self.critic_values(state, moves, received, *self._message_queries())
+            b_message[it, ib] = self._values(state, moves, received, *self._message_queries())
         return b_action, b_message
 
-    def critic_loss(self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
+    def critic_loss(
+        self,
+        ro: Rollout,
+        it: torch.Tensor,
+        ib: torch.Tensor,
+        returns: torch.Tensor,
+        features: _Features | None = None,
+    ) -> torch.Tensor:
         """MSE to Q_t `returns (T, B)` of every query the critic answers (action baselines, plus message
         baselines when a message has several recipients) at the rollout's steps `(it, ib)`."""
-        state, moves, received = ro.state[it, ib], ro.moves[it, ib], ro.received[it, ib]
-        values = [self.critic_values(state, moves, received, *self._action_queries())]
+        state, moves, received = self._state_features(ro, it, ib, features), ro.moves[it, ib], ro.received[it, ib]
+        values = [self._values(state, moves, received, *self._action_queries())]
         if not self.single_recipient:
-            values.append(self.critic_values(state, moves, received, *self._message_queries()))
+            values.append(self._values(state, moves, received, *self._message_queries()))
         return critic_mse(torch.cat(values, 1), returns[it, ib])
+
+    @torch.no_grad()
+    def read_features(self, ro: Rollout) -> _Features:
+        """The parameter-free part of both networks' reading of `ro`, for every pass of one update."""
+        it, ib = ro.valid.nonzero(as_tuple=True)
+
+        def spread(x: torch.Tensor) -> torch.Tensor:  # (M, ...) at the valid steps -> (T, B, ...)
+            out = x.new_zeros(*ro.valid.shape, *x.shape[1:])
+            out[it, ib] = x
+            return out
+
+        policy = critic = None
+        if self.policy.fixed_features:
+            flat = self.policy.observation_features(ro.planes[it, ib].flatten(0, 1), None)
+            policy = spread(flat.view(it.shape[0], self.n, -1))
+        if self.critic.fixed_features:
+            critic = spread(self.critic.state_features(ro.state[it, ib]))
+        return _Features(policy, critic)
 
     # ---------------------------------------------------------------- update
     def update(self, ro: Rollout, generator: torch.Generator | None = None, progress: float = 0.0) -> dict[str, float]:
@@ -131,37 +186,41 @@ class Learner:
             for opt, bases in zip((self.opt_policy, self.opt_critic), self.base_lrs, strict=True):
                 for group, base in zip(opt.param_groups, bases, strict=True):
                     group["lr"] = base * max(0.0, 1.0 - progress)
-        adv = self.advantages(ro)
+        features = self.read_features(ro)
+        adv = self.advantages(ro, features)
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
         clip_scales: list[float] | None = None  # measured on the update's first step, then reused
         for _ in range(cfg.epochs):
             order = torch.randperm(B, generator=generator) if cfg.minibatches > 1 else torch.arange(B)
             for cols in order.chunk(cfg.minibatches):
-                step_stats, clip_scales = self._step(ro, adv, cols, clip_scales)
+                step_stats, clip_scales = self._step(ro, adv, cols, clip_scales, features)
                 for k, v in step_stats.items():
                     stats.setdefault(k, []).append(v)
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
-    def advantages(self, ro: Rollout) -> Advantages:
+    def advantages(self, ro: Rollout, features: _Features | None = None) -> Advantages:
         """The chosen estimator's advantages on the batch `ro`, with the critics' baselines (and normalised
         with `adv_norm`): the only weights the policy-gradient term gives the two heads' scores."""
         it, ib = ro.valid.nonzero(as_tuple=True)
-        b_action, b_message = self.baselines(ro, it, ib)
+        b_action, b_message = self.baselines(ro, it, ib, features)
         batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
         adv = self.estimator(batch, self.cfg.gamma, self.cfg.task.channel.delay)
         if self.cfg.adv_norm:
             adv = adv._replace(action=scaled(adv.action, ro.valid), message=scaled(adv.message, ro.valid))
         return adv
 
-    def _forward(self, ro: Rollout, cols: torch.Tensor) -> _Forward:
+    def _forward(self, ro: Rollout, cols: torch.Tensor, features: _Features | None = None) -> _Forward:
         """The policy network over every valid step of the episodes in columns `cols`."""
         policy = self.policy
         valid = ro.valid[:, cols]
         it, ib = valid.nonzero(as_tuple=True)
         received = ro.received[it, cols[ib]]  # (M, n, slots, K)
         encoded = policy.encode_received(received.flatten(0, 1))
-        feats = policy.observation_features(ro.planes[it, cols[ib]].flatten(0, 1), encoded)
+        if features is not None and features.policy is not None:
+            feats = features.policy[it, cols[ib]].flatten(0, 1)
+        else:
+            feats = policy.observation_features(ro.planes[it, cols[ib]].flatten(0, 1), encoded)
         h1, h2 = policy.trunk(feats, encoded)
         return _Forward(cols, it, ib, received, encoded, feats, h1, policy.message_logits(h2), policy.move_logits(h2))
 
@@ -179,16 +238,21 @@ class Learner:
         return self._batch(ro, fw).log_probs
 
     def _step(
-        self, ro: Rollout, adv: Advantages, cols: torch.Tensor, clip_scales: list[float] | None
+        self,
+        ro: Rollout,
+        adv: Advantages,
+        cols: torch.Tensor,
+        clip_scales: list[float] | None,
+        features: _Features | None = None,
     ) -> tuple[dict[str, float], list[float]]:
         """One gradient step of policy and critic on the whole episodes in columns `cols`; returns the
         figures for the log and the policy losses' clip factors (see `_clipped_step`)."""
-        fw = self._forward(ro, cols)
+        fw = self._forward(ro, cols, features)
         # policy: the recipe's terms, summed per clip group (reinforcement, then each auxiliary term)
         losses, out = clip_groups(self.terms, self._batch(ro, fw, adv))
         clip_scales = self._clipped_step(self.opt_policy, list(self.policy.parameters()), losses, clip_scales)
         # critic: regress on Q_t for every query it answers
-        v_loss = self.critic_loss(ro, fw.it, cols[fw.ib], adv.returns)
+        v_loss = self.critic_loss(ro, fw.it, cols[fw.ib], adv.returns, features)
         self._clipped_step(self.opt_critic, list(self.critic.parameters()), [v_loss], None)
         out["losses/value"] = v_loss.item()
         return out, clip_scales
@@ -210,8 +274,7 @@ class Learner:
             scales = []
             for k, loss in enumerate(losses):
                 grads = torch.autograd.grad(loss, params, retain_graph=k < len(losses) - 1, allow_unused=True)
-                present = [g for g in grads if g is not None]
-                norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in present]))
+                norm = torch.nn.utils.get_total_norm([g for g in grads if g is not None])
                 scales.append(min(1.0, self.cfg.max_grad_norm / (float(norm) + 1e-6)))
                 total = [
                     t if g is None else (g * scales[k] if t is None else t + g * scales[k])

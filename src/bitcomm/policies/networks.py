@@ -139,9 +139,15 @@ class PolicyNet(nn.Module):
         # optional sender-grounding loss
         self.seen_logits = nn.Linear(cfg.hidden, 2 * size)
 
-    def observation_features(self, planes: torch.Tensor, received_encoded: torch.Tensor) -> torch.Tensor:
+    @property
+    def fixed_features(self) -> bool:
+        """Whether `observation_features` has no parameters and ignores the received message (an encoder other
+        than `conv`, no message map): a learner may then read a batch's observations once for all its passes."""
+        return next(self.conv.parameters(), None) is None and self.message_map is None
+
+    def observation_features(self, planes: torch.Tensor, received_encoded: torch.Tensor | None) -> torch.Tensor:
         """`(N, 2, S, S)` planes (any dtype) -> `(N, flat)` features; the received message enters here
-        only with `message_map`."""
+        only with `message_map` (None will do without one)."""
         x = planes.float()
         seen = torch.cat([x, self.coords.expand(x.shape[0], -1, -1, -1)], 1) if self.coord_planes else x
         if self.message_map is None:
@@ -160,8 +166,9 @@ class PolicyNet(nn.Module):
         centre = torch.einsum("npij,cij->npc", x, self.coords) / mass[..., None]  # (N, planes, 2)
         return torch.cat([features, centre.flatten(1)], 1)
 
-    def _decoded_maps(self, received_encoded: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+    def _decoded_maps(self, received_encoded: torch.Tensor | None, shape: torch.Size) -> torch.Tensor:
         """`(N, slots, S, S)`: each received message's most likely cell, one-hot, with the softmax's gradient."""
+        assert received_encoded is not None, "the message map reads the received messages"
         soft = torch.softmax(self.map_logits(received_encoded), -1)  # (N, slots, S * S)
         hard = nn.functional.one_hot(soft.argmax(-1), soft.shape[-1]).to(soft.dtype)
         return (hard + soft - soft.detach()).view(shape[0], -1, *shape[2:])
@@ -245,6 +252,11 @@ class CriticNet(nn.Module):
             nn.ReLU(),
             nn.Linear(cfg.hidden, 1),
         )
+
+    @property
+    def fixed_features(self) -> bool:
+        """Whether `state_features` has no parameters (an encoder other than `conv`), see `PolicyNet`."""
+        return next(self.conv.parameters(), None) is None
 
     def state_features(self, state: torch.Tensor) -> torch.Tensor:
         """`(M, 2n, S, S)` state planes -> `(M, flat)`, shared by every query about that state."""
