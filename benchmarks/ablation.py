@@ -17,6 +17,8 @@ its episode budget (a row that does not anneal trains for `--minutes` only, as b
 
     python benchmarks/ablation.py --size 4 --bits 4 --minutes 1 --max-episodes 30000   # from paper, each fix on
     python benchmarks/ablation.py --base reinforced --target paper --size 4 --bits 4 --minutes 1 --max-episodes 30000
+    python benchmarks/ablation.py --base reinforced --target paper --size 10 --bits 7 --minutes 5 \
+        --max-episodes 100000 --chunk 8192                                         # the paper's task (results 4d)
 """
 
 from __future__ import annotations

@@ -100,3 +100,14 @@ def test_greedy_split_plays_a_run_four_ways(tmp_path: Path) -> None:
     rows = [line for line in out.stdout.splitlines() if line.startswith(("| sampled", "| greedy"))]
     assert [r.split(" | ")[:2] for r in rows] == [["| sampled", "sampled"], ["| greedy", "greedy"],
                                                   ["| greedy", "sampled"], ["| sampled", "greedy"]]  # fmt: skip
+
+
+def test_update_profile_groups_an_update_s_time_and_ends_with_json() -> None:
+    argv = [sys.executable, "benchmarks/update_profile.py", "--num-envs", "4", "--updates", "1"]
+    out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    assert summary["agent_steps_per_batch"] > 0 and summary["cpu_s_per_update"] > 0
+    assert abs(sum(summary["shares"].values()) - 1.0) < 1e-3 and summary["shares"]["matrix products"] > 0
+    bad = subprocess.run([*argv[:2], "--updates", "0"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "updates" in bad.stderr.strip().splitlines()[-1]

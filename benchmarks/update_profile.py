@@ -1,0 +1,91 @@
+"""Where one learning update spends its time: `torch.profiler` over a few updates of one batch, grouped.
+
+Plays one batch of the recipe (default: `reinforced`, the default task) with a fresh policy, warms up with
+one update, then profiles `--updates` more on the same batch and prints the share of self CPU time of each
+group of operators (matrix products, activations, indexing and copies, the optimizer, the rest) and the
+slowest operators. The last line printed is one JSON object. It answers "what would a faster update have
+to remove": `benchmarks/train_speed.py` measures the throughput itself.
+
+    python benchmarks/update_profile.py [--recipe reinforced] [--updates 3] [--threads 1] [--num-envs N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+
+import numpy as np
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+from bitcomm.errors import ConfigError, check_int
+from bitcomm.learn.config import make_train_config
+from bitcomm.learn.learner import Learner
+from bitcomm.learn.recipes import RECIPES
+from bitcomm.learn.rollout import Collector
+
+GROUPS: dict[str, tuple[str, ...]] = {
+    "matrix products": ("aten::mm", "aten::addmm", "aten::bmm", "aten::matmul", "aten::convolution"),
+    "activations": ("aten::threshold_backward", "aten::clamp_min", "aten::relu"),
+    "indexing and copies": ("aten::index", "aten::index_put", "aten::copy_", "aten::cat", "aten::_to_copy"),
+    "optimizer": ("Optimizer.step", "aten::_foreach"),
+}
+"""Operator-name prefixes of each group (the rest is `other`)."""
+
+
+def group_of(name: str) -> str:
+    return next((g for g, prefixes in GROUPS.items() if name.startswith(prefixes)), "other")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--recipe", choices=tuple(RECIPES), default="reinforced")
+    ap.add_argument("--updates", type=int, default=3, help="profiled updates (after one warm-up)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    ap.add_argument("--num-envs", type=int, default=None, help="episodes in the batch (default: the recipe's)")
+    ap.add_argument("--top", type=int, default=10, help="slowest operators listed")
+    a = ap.parse_args()
+    try:  # bad input is one line before anything runs
+        for name in ("updates", "threads", "top"):
+            check_int(name, getattr(a, name), 1)
+        cfg = make_train_config(a.recipe, num_envs=a.num_envs, mode="sync")
+    except ConfigError as err:
+        ap.error(str(err))
+    torch.set_num_threads(a.threads)
+    torch.manual_seed(0)
+    learner, generator = Learner(cfg), torch.Generator().manual_seed(0)
+    ro = Collector(cfg.training_task, cfg.num_envs).collect(learner.policy, np.random.SeedSequence(0), generator)
+    learner.update(ro, generator)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(a.updates):
+            learner.update(ro, generator)
+    ops = [(e.key, e.self_cpu_time_total) for e in prof.key_averages()]
+    total = sum(t for _, t in ops)
+    shares: dict[str, float] = defaultdict(float)
+    for name, t in ops:
+        shares[group_of(name)] += t / total
+    agent_steps = int(ro.length.sum()) * cfg.task.env.n_agents
+    per_update = total / 1e6 / a.updates
+    print(
+        f"{a.recipe}: {agent_steps:,} agent-steps per batch, {cfg.epochs} epochs x {cfg.minibatches} minibatches, "
+        f"{per_update:.3f} s of CPU per update ({a.threads} thread(s), profiler overhead included)"
+    )
+    for g, share in sorted(shares.items(), key=lambda kv: -kv[1]):
+        print(f"  {g:20s} {100 * share:5.1f}%")
+    print("slowest operators:")
+    for name, t in sorted(ops, key=lambda kv: -kv[1])[: a.top]:
+        print(f"  {name:40s} {100 * t / total:5.1f}%")
+    summary = {
+        "benchmark": "update_profile",
+        "recipe": a.recipe,
+        "threads": a.threads,
+        "agent_steps_per_batch": agent_steps,
+        "cpu_s_per_update": round(per_update, 4),
+        "shares": {g: round(s, 4) for g, s in shares.items()},
+    }
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
