@@ -255,7 +255,7 @@ def test_reading_the_observations_once_per_update_makes_the_same_update(encoder,
         cfg = make_train_config("reinforced", TINY, num_envs=8, encoder=encoder, estimator=estimator)
         learner = Learner(cfg)
         if not read_once:
-            monkeypatch.setattr(learner, "read_features", lambda ro: learner_module._Features(None, None))
+            monkeypatch.setattr(learner, "read_features", lambda ro: learner_module.BatchFeatures(None, None))
         generator = torch.Generator().manual_seed(0)
         learner.update(Collector(TINY, 8).collect(learner.policy, np.random.SeedSequence(0), generator), generator)
         return [p.detach().clone() for p in [*learner.policy.parameters(), *learner.critic.parameters()]]

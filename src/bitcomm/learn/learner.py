@@ -25,7 +25,7 @@ from bitcomm.learn.rollout import Rollout
 from bitcomm.policies.networks import CriticNet, PolicyNet
 
 
-class _Features(NamedTuple):
+class BatchFeatures(NamedTuple):
     """The networks' reading of a batch's observations where it has no parameters (`fixed_features`: every
     encoder but `conv`), computed once per update instead of once per pass: the 4 epochs of the default recipe
     would otherwise sum the same planes 9 times. `policy (T, B, n, flat)`, `critic (T, B, flat)`, 0 at invalid
@@ -113,8 +113,9 @@ class Learner:
         return v.view(M, k)
 
     def _state_features(
-        self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, features: _Features | None
+        self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, features: BatchFeatures | None
     ) -> torch.Tensor:
+        """The critic's features of the state at steps `(it, ib)`: read once per batch where they can be."""
         if features is not None and features.critic is not None:
             return features.critic[it, ib]
         return self.critic.state_features(ro.state[it, ib])
@@ -129,7 +130,7 @@ class Learner:
 
     @torch.no_grad()
     def baselines(
-        self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, features: _Features | None = None
+        self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, features: BatchFeatures | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         T, B = ro.valid.shape
         state, moves, received = self._state_features(ro, it, ib, features), ro.moves[it, ib], ro.received[it, ib]
@@ -148,7 +149,7 @@ class Learner:
         it: torch.Tensor,
         ib: torch.Tensor,
         returns: torch.Tensor,
-        features: _Features | None = None,
+        features: BatchFeatures | None = None,
     ) -> torch.Tensor:
         """MSE to Q_t `returns (T, B)` of every query the critic answers (action baselines, plus message
         baselines when a message has several recipients) at the rollout's steps `(it, ib)`."""
@@ -159,7 +160,7 @@ class Learner:
         return critic_mse(torch.cat(values, 1), returns[it, ib])
 
     @torch.no_grad()
-    def read_features(self, ro: Rollout) -> _Features:
+    def read_features(self, ro: Rollout) -> BatchFeatures:
         """The parameter-free part of both networks' reading of `ro`, for every pass of one update."""
         it, ib = ro.valid.nonzero(as_tuple=True)
 
@@ -174,7 +175,7 @@ class Learner:
             policy = spread(flat.view(it.shape[0], self.n, -1))
         if self.critic.fixed_features:
             critic = spread(self.critic.state_features(ro.state[it, ib]))
-        return _Features(policy, critic)
+        return BatchFeatures(policy, critic)
 
     # ---------------------------------------------------------------- update
     def update(self, ro: Rollout, generator: torch.Generator | None = None, progress: float = 0.0) -> dict[str, float]:
@@ -199,7 +200,7 @@ class Learner:
                     stats.setdefault(k, []).append(v)
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
-    def advantages(self, ro: Rollout, features: _Features | None = None) -> Advantages:
+    def advantages(self, ro: Rollout, features: BatchFeatures | None = None) -> Advantages:
         """The chosen estimator's advantages on the batch `ro`, with the critics' baselines (and normalised
         with `adv_norm`): the only weights the policy-gradient term gives the two heads' scores."""
         it, ib = ro.valid.nonzero(as_tuple=True)
@@ -210,7 +211,7 @@ class Learner:
             adv = adv._replace(action=scaled(adv.action, ro.valid), message=scaled(adv.message, ro.valid))
         return adv
 
-    def _forward(self, ro: Rollout, cols: torch.Tensor, features: _Features | None = None) -> _Forward:
+    def _forward(self, ro: Rollout, cols: torch.Tensor, features: BatchFeatures | None = None) -> _Forward:
         """The policy network over every valid step of the episodes in columns `cols`."""
         policy = self.policy
         valid = ro.valid[:, cols]
@@ -243,7 +244,7 @@ class Learner:
         adv: Advantages,
         cols: torch.Tensor,
         clip_scales: list[float] | None,
-        features: _Features | None = None,
+        features: BatchFeatures | None = None,
     ) -> tuple[dict[str, float], list[float]]:
         """One gradient step of policy and critic on the whole episodes in columns `cols`; returns the
         figures for the log and the policy losses' clip factors (see `_clipped_step`)."""
