@@ -133,14 +133,14 @@ class Learner:
         self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, features: BatchFeatures | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         T, B = ro.valid.shape
-        state, moves, received = self._state_features(ro, it, ib, features), ro.moves[it, ib], ro.received[it, ib]
+        state_feats, moves, received = self._state_features(ro, it, ib, features), ro.moves[it, ib], ro.received[it, ib]
         b_action = torch.zeros(T, B, self.n)
-        b_action[it, ib] = self._values(state, moves, received, *self._action_queries())
+        b_action[it, ib] = self._values(state_feats, moves, received, *self._action_queries())
         if self.single_recipient:
             b_message = b_action[:, :, self.recipient_of]
         else:
             b_message = torch.zeros(T, B, self.n)
-            b_message[it, ib] = self._values(state, moves, received, *self._message_queries())
+            b_message[it, ib] = self._values(state_feats, moves, received, *self._message_queries())
         return b_action, b_message
 
     def critic_loss(
@@ -153,10 +153,10 @@ class Learner:
     ) -> torch.Tensor:
         """MSE to Q_t `returns (T, B)` of every query the critic answers (action baselines, plus message
         baselines when a message has several recipients) at the rollout's steps `(it, ib)`."""
-        state, moves, received = self._state_features(ro, it, ib, features), ro.moves[it, ib], ro.received[it, ib]
-        values = [self._values(state, moves, received, *self._action_queries())]
+        state_feats, moves, received = self._state_features(ro, it, ib, features), ro.moves[it, ib], ro.received[it, ib]
+        values = [self._values(state_feats, moves, received, *self._action_queries())]
         if not self.single_recipient:
-            values.append(self._values(state, moves, received, *self._message_queries()))
+            values.append(self._values(state_feats, moves, received, *self._message_queries()))
         return critic_mse(torch.cat(values, 1), returns[it, ib])
 
     @torch.no_grad()
