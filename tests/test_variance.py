@@ -26,12 +26,16 @@ from bitcomm.studies.variance import (
     PARTS,
     Moments,
     VarianceConfig,
+    VarianceRow,
     cosine,
     gradient_parts,
     load_stage,
+    markdown_table,
     measure_stage,
     parse_stages,
+    run_of,
     select_stages,
+    variance_lines,
 )
 
 TINY = TaskConfig(EnvConfig(size=3, max_steps=20), ChannelConfig(bits=2))
@@ -147,6 +151,31 @@ def test_cli_writes_csv_markdown_png_and_json(run_dir: Path, tmp_path: Path, cap
     assert main(["variance", str(run_dir), "--stages", "7", "--out", str(out)]) == 2
     assert main(["variance", str(run_dir), "--bits", "3", "--out", str(out)]) == 2
     assert capsys.readouterr().err.count("\n") == 2
+
+
+def measured(checkpoint: str, episodes: int, part: str) -> VarianceRow:
+    """A row as `measure_stage` makes one, with made-up figures."""
+    return VarianceRow(episodes, part, 2.0, 1.0, 0.5, 0.9, 1.0, 1.0, 0.1, 0.1, 3, 6, 8, checkpoint)
+
+
+def test_rows_of_several_runs_are_kept_apart_in_the_table_and_the_plot() -> None:
+    stages = [(f"runs/{run}/checkpoints/ckpt_{e:09d}.safetensors", e) for run in ("a", "b") for e in (10, 20)]
+    rows = [measured(f, e, part) for f, e in [*stages, ("loose.safetensors", 30)] for part in PARTS]
+    assert [run_of(r) for r in rows[:: len(PARTS)]] == ["runs/a", "runs/a", "runs/b", "runs/b", "loose.safetensors"]
+    table = markdown_table(rows).splitlines()
+    assert "| run | episodes trained |" in "\n".join(table)
+    per_run = [sum(line.startswith(f"| {run} | ") for line in table) for run in ("runs/a", "runs/b")]
+    assert per_run == [2 * len(PARTS)] * 2
+    lines = variance_lines(rows, "message")  # one line per run and estimator: stages of two runs never joined
+    runs = ("runs/a", "runs/b", "loose.safetensors")
+    assert [label for label, _, _ in lines] == [f"{e}: {run}" for run in runs for e in ("standard", "improved")]
+    assert [x for x, _ in lines.values()] == [[10, 20]] * 4 + [[30]] * 2
+
+    two = rows[: 4 * len(PARTS)]  # runs/a and runs/b: labelled without the folder they share
+    assert [label for label, _, _ in variance_lines(two, "total")][::2] == ["standard: a", "standard: b"]
+    one = rows[: 2 * len(PARTS)]  # one run: no run column, the estimators' names as labels
+    assert "| run |" not in markdown_table(one)
+    assert [label for label, _, _ in variance_lines(one, "action")] == ["standard", "improved"]
 
 
 def test_cli_defaults_are_the_config_defaults() -> None:

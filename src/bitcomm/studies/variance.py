@@ -333,24 +333,61 @@ def write_csv(rows: list[VarianceRow], path: str | Path) -> Path:
     return write_rows_csv((r.to_dict() for r in rows), CSV_FIELDS, path)
 
 
+def run_of(row: VarianceRow) -> str:
+    """The run a row was measured on: the folder holding its checkpoint's `checkpoints/`, else the file."""
+    file = Path(row.checkpoint)
+    return str(file.parent.parent) if file.parent.name == "checkpoints" else str(file)
+
+
 def markdown_table(rows: list[VarianceRow], title: str = "") -> str:
-    """The table across stages: one line per stage and part."""
+    """The table across stages: one line per stage and part, and a run column when rows come from several
+    runs (their episode counts alone would not tell them apart)."""
+    several = len({run_of(r) for r in rows}) > 1
     lines = [f"# {title}", ""] if title else []
     lines += [
         "Variance = trace of the covariance of one batch's gradient estimate across batches; ratio = improved /"
         " standard (below 1: the improved estimator is less noisy); cosine between the two estimators' mean"
         " gradients (both are unbiased: near 1 when the batches are many).",
         "",
-        "| episodes trained | part | var standard | var improved | ratio | cosine |",
-        "| ---: | --- | ---: | ---: | ---: | ---: |",
+        ("| run " if several else "") + "| episodes trained | part | var standard | var improved | ratio | cosine |",
+        ("| --- " if several else "") + "| ---: | --- | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
         figures = f"{r.var_standard:.4g} | {r.var_improved:.4g} | {r.ratio:.3f} | {r.cosine:.3f}"
-        lines.append(f"| {r.episodes} | {r.part} | {figures} |")
+        lines.append(("| " + run_of(r) + " " if several else "") + f"| {r.episodes} | {r.part} | {figures} |")
     if rows:
         r = rows[0]
         lines += ["", f"{r.batches} batches of {r.num_envs} episodes per stage."]
     return "\n".join(lines) + "\n"
+
+
+def short_names(runs: list[str]) -> dict[str, str]:
+    """Each run's path without the folders all of them share (`study/runs/a`, `study/runs/b` -> `a`, `b`)."""
+    parts = [Path(run).parts for run in runs]
+    k = 0
+    while len(runs) > 1 and all(len(p) > k + 1 for p in parts) and len({p[k] for p in parts}) == 1:
+        k += 1
+    return {run: str(Path(*p[k:])) for run, p in zip(runs, parts, strict=True)}
+
+
+VarianceLines = dict[tuple[str, str, str], tuple[list[int], list[float]]]
+"""(label, estimator, matplotlib line style) -> (episodes trained, variances): the lines of one panel."""
+
+
+def variance_lines(rows: list[VarianceRow], part: str) -> VarianceLines:
+    """The plot's lines for one part: one per estimator and run, so that the stages of different runs are
+    never joined into one line (a run's line style tells the runs apart, the colour the estimators)."""
+    runs = list(dict.fromkeys(run_of(r) for r in rows))
+    names = short_names(runs)
+    styles = ("o-", "s--", "^:", "D-.", "v-", "P--")
+    lines: VarianceLines = {}
+    for k, run in enumerate(runs):
+        pts = sorted((r for r in rows if r.part == part and run_of(r) == run), key=lambda r: r.episodes)
+        for estimator in ("standard", "improved"):
+            label = f"{estimator}: {names[run]}" if len(runs) > 1 else estimator
+            y = [getattr(r, f"var_{estimator}") for r in pts]
+            lines[label, estimator, styles[k % len(styles)]] = ([r.episodes for r in pts], y)
+    return lines
 
 
 def plot_variance(rows: list[VarianceRow], path: str | Path, title: str = "") -> Path:
@@ -362,17 +399,17 @@ def plot_variance(rows: list[VarianceRow], path: str | Path, title: str = "") ->
     fig = Figure(figsize=(4.2 * len(parts) + 0.4, 3.6), layout="constrained")
     axes = fig.subplots(1, len(parts), squeeze=False)[0]
     for ax, part in zip(axes, parts, strict=True):
-        pts = sorted((r for r in rows if r.part == part), key=lambda r: r.episodes)
-        x = [r.episodes for r in pts]
-        for name, color in (("standard", "C0"), ("improved", "C1")):
-            y = [getattr(r, f"var_{name}") for r in pts]
-            ax.plot(x, y, marker="o", color=color, label=name)
+        for (label, estimator, style), (x, y) in variance_lines(rows, part).items():
+            ax.plot(x, y, style, color="C0" if estimator == "standard" else "C1", label=label)
         ax.set_yscale("log")
         ax.set_xlabel("episodes trained")
         ax.set_ylabel("trace Cov(gradient estimate)")
         ax.set_title(f"{part} part", fontsize=10)
         ax.grid(alpha=0.3, which="both")
-    axes[0].legend(fontsize=8)
+    if len({run_of(r) for r in rows}) > 1:  # a label per run and estimator: below the panels, off the data
+        fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=2, fontsize=8)
+    else:
+        axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
     return save_figure(fig, path)[0]
