@@ -293,6 +293,31 @@ def test_kill_9_then_resume_loses_at_most_one_interval(tmp_path: Path, capsys) -
     assert leftovers(out) == [] and json.loads(latest.read_text())["episodes"] == 320
 
 
+def test_ctrl_c_saves_the_batch_it_stopped_after_and_resume_goes_on(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "interrupted"
+    args = ["train", *QUICK[:-1], "3600", "--episodes", "960"]  # no periodic checkpoint: only the stop saves
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bitcomm.cli", *args, "--out", str(out)],
+        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, even under CI
+    )  # fmt: skip
+    metrics, deadline = out / "metrics.csv", time.monotonic() + 90
+    while proc.poll() is None and time.monotonic() < deadline:
+        if metrics.exists() and len(metrics.read_text().splitlines()) > 3:  # header + 3 batches
+            break
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    played = json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"]
+    logged = len(metrics.read_text().splitlines()) - 1
+    assert 48 <= played < 960 and played == logged * 16, err  # every batch played is in the checkpoint
+    assert f"stopped after {played} episodes" in err and "Traceback" not in err
+    rc, err = cli(capsys, *args, "--out", str(out), "--resume")
+    assert rc == 0, err
+    assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] == 960
+
+
 # ---------------------------------------------------------------------------------------------- retention
 def test_retention_keeps_the_last_n_and_the_best(tmp_path: Path) -> None:
     rolling = {16: 9.0, 32: 4.0, 48: 6.0, 64: 7.0, 80: 8.0}

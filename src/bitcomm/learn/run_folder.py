@@ -14,14 +14,17 @@ the moment one is NaN or infinite.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import platform
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -349,6 +352,29 @@ def save_learner(
     return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state, metric)
 
 
+@contextlib.contextmanager
+def stop_after_batch() -> Iterator[Callable[[], bool]]:
+    """Ctrl-C while training asks the loop to stop after the batch it is on, so that the run can save it and
+    lose nothing (without this, up to `checkpoint_seconds` of training); a second Ctrl-C interrupts at
+    once. Only where Python's own handler has SIGINT: in the main thread, and not where it is ignored (a
+    background job) or another handler took it."""
+    asked: list[int] = []
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or previous is not signal.default_int_handler:
+        yield lambda: False
+        return
+
+    def ask(signum: int, frame: object) -> None:
+        asked.append(signum)
+        signal.signal(signal.SIGINT, previous)
+
+    signal.signal(signal.SIGINT, ask)
+    try:
+        yield lambda: bool(asked)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def train_batches(
     cfg: RunConfig,
     prog: Progress,
@@ -360,23 +386,31 @@ def train_batches(
 ) -> Path:
     """The synchronous trainers' loop (the grid's and a wrapped env's): `play_and_learn()` plays and learns
     one batch, counts it in `prog` and returns its log row; a checkpoint every `checkpoint_seconds` and
-    one at the end (returned); the progress bar shows `postfix(row)`. Closes the log however it ends."""
+    one at the end (returned); the progress bar shows `postfix(row)`. Closes the log however it ends.
+    Ctrl-C stops it after the current batch with a checkpoint of it (`stop_after_batch`), then raises
+    KeyboardInterrupt as an interrupt would."""
     from tqdm import tqdm
 
     planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs  # whole batches: the episodes that will be played
     bar = tqdm(total=planned, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
     last_save = time.monotonic()
     try:
-        while prog.episodes < cfg.episodes:
-            before = prog.episodes
-            row = play_and_learn()
-            logger.log(row)
-            bar.update(prog.episodes - before)
-            bar.set_postfix(**postfix(row))
-            if time.monotonic() - last_save >= cfg.checkpoint_seconds and prog.episodes < cfg.episodes:
-                save()
-                last_save = time.monotonic()
-        return save()
+        with stop_after_batch() as stop_asked:
+            while prog.episodes < cfg.episodes:
+                before = prog.episodes
+                row = play_and_learn()
+                logger.log(row)
+                bar.update(prog.episodes - before)
+                bar.set_postfix(**postfix(row))
+                if stop_asked():
+                    path = save()
+                    bar.close()
+                    print(f"stopped after {prog.episodes} episodes, saved as {path}; --resume goes on", file=sys.stderr)
+                    raise KeyboardInterrupt
+                if time.monotonic() - last_save >= cfg.checkpoint_seconds and prog.episodes < cfg.episodes:
+                    save()
+                    last_save = time.monotonic()
+            return save()
     finally:
         bar.close()
         logger.close()
