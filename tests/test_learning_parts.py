@@ -76,6 +76,35 @@ def test_policy_and_critics_shapes():
         assert v.shape == (6,)
 
 
+@pytest.mark.parametrize("encoder", ["conv", "marginals"])
+@pytest.mark.parametrize("with_message", [True, False])
+def test_a_critic_answers_k_queries_per_state_as_it_answers_each_alone(encoder, with_message):
+    """`value` computes a state's share of the first layer once for the k queries about it; the answers and
+    the gradients are those of one state row per query."""
+    task = TaskConfig(EnvConfig(size=5, n_agents=3), ChannelConfig(bits=4, recipients=((1, 2), (0,), (0,))))
+    torch.manual_seed(0)
+    critic = CriticNet(task, ModelConfig(encoder=encoder), with_message)
+    M, k = 7, 4
+    state = (torch.rand(M, 6, 5, 5) < 0.1).float()
+    queries = (
+        torch.tensor([0, 1, 2, 1]).repeat(M),
+        torch.randint(0, 5, (M * k, 3)),
+        torch.rand(M * k, 3) < 0.5,
+        torch.randint(0, 2, (M * k, task.slots, 4), dtype=torch.uint8),
+    )
+    params = list(critic.parameters())
+    shared = critic.value(critic.state_features(state), *queries)
+    one_each = critic.value(critic.state_features(state).repeat_interleave(k, 0), *queries)
+    assert shared.shape == (M * k,)
+    torch.testing.assert_close(shared, one_each)
+    grads = torch.autograd.grad(shared.square().sum(), params, allow_unused=True)
+    expected = torch.autograd.grad(one_each.square().sum(), params, allow_unused=True)
+    for g, e in zip(grads, expected, strict=True):
+        assert (g is None) == (e is None)
+        if g is not None:
+            torch.testing.assert_close(g, e)
+
+
 @pytest.mark.parametrize("size", [4, 5])
 def test_decoded_maps_enter_the_first_convolution_as_a_matrix_product_with_the_same_values_and_gradients(size):
     task = TaskConfig(EnvConfig(size=size, n_agents=3), ChannelConfig(bits=4, recipients=((1, 2), (0,), (0,))))

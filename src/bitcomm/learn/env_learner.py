@@ -19,11 +19,15 @@ wrapper fixes (`fixed_actions`) add no action log-probability and no action entr
 
 from __future__ import annotations
 
+import functools
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import torch
 
 from bitcomm.config import slot_table
 from bitcomm.envs.vector import EnvLayout
+from bitcomm.learn.beside import start
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_rollout import EnvRollout
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator, policy_gradient_loss
@@ -46,6 +50,7 @@ class EnvLearner:
         self.not_recipient = torch.from_numpy(~layout.recipients)  # (n, n): [j, k] k's action may be given
         self.learns_action = torch.from_numpy(~layout.fixed)  # (n,)
         self.codebook = None  # no auxiliary code book here: the run folder's helpers save what a Learner saves
+        self.helper: ThreadPoolExecutor | None = None  # where the critic steps run (bitcomm.learn.beside)
 
     # ---------------------------------------------------------------- critic
     def _queries(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -147,6 +152,14 @@ class EnvLearner:
         stats = {"losses/policy": pg.item(), "charts/entropy_action": h_a.item(), "charts/entropy_message": h_m.item()}
         return loss, stats
 
+    def _critic_step(self, ro: EnvRollout, adv: Advantages, cols: torch.Tensor) -> float:
+        """One gradient step of the critic on the columns `cols`: regress on Q_t (beside the policy's step where
+        a helper thread is given, bitcomm.learn.beside)."""
+        it, ib = ro.valid[:, cols].nonzero(as_tuple=True)
+        v_loss = critic_mse(self.critic_values(ro, it, cols[ib]), adv.returns[it, cols[ib]])
+        _step(self.opt_critic, self.critic, v_loss, self.cfg.max_grad_norm)
+        return v_loss.item()
+
     def update(self, ro: EnvRollout, generator: torch.Generator | None = None) -> dict[str, float]:
         cfg = self.cfg
         adv = self.advantages(ro)
@@ -155,12 +168,10 @@ class EnvLearner:
         for _ in range(cfg.epochs):
             order = torch.randperm(B, generator=generator) if cfg.minibatches > 1 else torch.arange(B)
             for cols in order.chunk(cfg.minibatches):
+                critic_loss = start(self.helper, functools.partial(self._critic_step, ro, adv, cols))
                 loss, step_stats = self.policy_loss(ro, adv, cols)
                 _step(self.opt_policy, self.policy, loss, cfg.max_grad_norm)
-                it, ib = ro.valid[:, cols].nonzero(as_tuple=True)
-                v_loss = critic_mse(self.critic_values(ro, it, cols[ib]), adv.returns[it, cols[ib]])
-                _step(self.opt_critic, self.critic, v_loss, cfg.max_grad_norm)
-                step_stats["losses/value"] = v_loss.item()
+                step_stats["losses/value"] = critic_loss()
                 for k, v in step_stats.items():
                     stats.setdefault(k, []).append(v)
         return {k: float(np.mean(v)) for k, v in stats.items()}

@@ -20,6 +20,7 @@ import torch
 
 from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_weights
 from bitcomm.errors import ConfigError
+from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.env_config import EnvTrainConfig, is_env_config
 from bitcomm.learn.env_learner import EnvLearner
 from bitcomm.learn.env_rollout import make_vec, play
@@ -88,7 +89,8 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
     def postfix(row: dict[str, Any]) -> dict[str, str]:
         return {"ret": f"{row['charts/team_return_rolling']:.2f}"}
 
-    return train_batches(cfg, prog, logger, play_and_learn, save, postfix, progress)
+    with critic_beside_policy(learner, torch.get_num_threads()):
+        return train_batches(cfg, prog, logger, play_and_learn, save, postfix, progress)
 
 
 def env_run_config(path: Path | str) -> EnvTrainConfig | None:

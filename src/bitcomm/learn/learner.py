@@ -12,11 +12,13 @@ The learner speaks the rollout's tensors (`bitcomm.learn.rollout.Rollout`); the 
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
+from bitcomm.learn.beside import start
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
@@ -75,6 +77,7 @@ class Learner:
         self.routes = Routes(self.slot_senders, self.observed, self.slot_goal, task.channel.delay, task.env.size)
         self.codebook = CodeBook(task.env.size**2, self.policy.head) if cfg.code_coef > 0 else None
         self.progress = 0.0  # of the schedules, as of the last update
+        self.helper: ThreadPoolExecutor | None = None  # where the critic steps run (bitcomm.learn.beside)
 
     @property
     def terms(self) -> list[Term]:
@@ -109,7 +112,7 @@ class Learner:
         rep = torch.arange(M).repeat_interleave(k)
         vp = viewpoint.repeat(M)
         rec = received[rep, vp] if self.critic.with_message else None
-        v = self.critic.value(features[rep], vp, moves[rep], given.repeat(M, 1), rec)
+        v = self.critic.value(features, vp, moves[rep], given.repeat(M, 1), rec)  # each state's k queries in a row
         return v.view(M, k)
 
     def _state_features(
@@ -249,13 +252,17 @@ class Learner:
         """One gradient step of policy and critic on the whole episodes in columns `cols`; returns the
         figures for the log and the policy losses' clip factors (see `_clipped_step`)."""
         fw = self._forward(ro, cols, features)
+
+        def critic_step() -> float:  # regress on Q_t for every query the critic answers
+            v_loss = self.critic_loss(ro, fw.it, cols[fw.ib], adv.returns, features)
+            self._clipped_step(self.opt_critic, list(self.critic.parameters()), [v_loss], None)
+            return v_loss.item()
+
+        critic_loss = start(self.helper, critic_step)  # beside the policy's step where a helper thread is given
         # policy: the recipe's terms, summed per clip group (reinforcement, then each auxiliary term)
         losses, out = clip_groups(self.terms, self._batch(ro, fw, adv))
         clip_scales = self._clipped_step(self.opt_policy, list(self.policy.parameters()), losses, clip_scales)
-        # critic: regress on Q_t for every query it answers
-        v_loss = self.critic_loss(ro, fw.it, cols[fw.ib], adv.returns, features)
-        self._clipped_step(self.opt_critic, list(self.critic.parameters()), [v_loss], None)
-        out["losses/value"] = v_loss.item()
+        out["losses/value"] = critic_loss()
         return out, clip_scales
 
     def _clipped_step(

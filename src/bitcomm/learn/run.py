@@ -24,6 +24,7 @@ from bitcomm.checkpoint import (
     LATEST,
 )
 from bitcomm.errors import ConfigError
+from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.run_folder import (
     Logger,
@@ -101,6 +102,13 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
     def postfix(row: dict[str, Any]) -> dict[str, str]:
         return {"len": f"{row['charts/episode_length_rolling']:.1f}", "ret": f"{np.mean(prog.recent_return):.2f}"}
 
-    return train_batches(
-        cfg, prog, logger, play_and_learn, lambda: save_learner(out, cfg, learner, generator, prog), postfix, progress
-    )
+    with critic_beside_policy(learner, torch.get_num_threads()):
+        return train_batches(
+            cfg,
+            prog,
+            logger,
+            play_and_learn,
+            lambda: save_learner(out, cfg, learner, generator, prog),
+            postfix,
+            progress,
+        )

@@ -98,6 +98,14 @@ class Marginals(nn.Module):
         return torch.cat(parts, 2).flatten(1)
 
 
+def partial_linear(layer: nn.Module, part: torch.Tensor, start: int, bias: bool = False) -> torch.Tensor:
+    """The share of `part` (the input columns from `start` on) in the linear `layer`'s output: a layer of a
+    concatenation is the sum of its parts' shares. Computed apart, a part that needs no gradient (features read
+    once per batch) costs the backward pass nothing, and one shared by several rows is multiplied once."""
+    assert isinstance(layer, nn.Linear)
+    return nn.functional.linear(part, layer.weight[:, start : start + part.shape[1]], layer.bias if bias else None)
+
+
 def _coord_planes(size: int) -> torch.Tensor:
     r = torch.linspace(-1.0, 1.0, size)
     return torch.stack([r[:, None].expand(size, size), r[None, :].expand(size, size)])
@@ -209,7 +217,10 @@ class PolicyNet(nn.Module):
 
     def trunk(self, obs_features: torch.Tensor, received_encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Returns the first and second hidden layers."""
-        h1 = self.fc1(torch.cat([obs_features, self.message_in(received_encoded)], -1))
+        first = self.fc1[0]  # fc1 of the concatenation, as a sum of its two parts' products
+        flat = obs_features.shape[1]
+        heard = partial_linear(first, self.message_in(received_encoded), flat)
+        h1 = self.fc1[1:](partial_linear(first, obs_features, 0, bias=True) + heard)
         return h1, self.fc2(h1)
 
     def forward(self, planes: torch.Tensor, received: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -270,9 +281,15 @@ class CriticNet(nn.Module):
         given: torch.Tensor,
         received: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """`features (N, flat)`, `viewpoint (N,)`, `moves/given (N, n)`, `received (N, slots, K)` -> `(N,)`."""
+        """`features (M, flat)`, `viewpoint (N,)`, `moves/given (N, n)`, `received (N, slots, K)` -> `(N,)`, for N
+        queries about M states, each state's N // M queries consecutive. The state's share of the first layer is
+        computed once per state, not once per query: the queries about one state (an agent's action baseline,
+        its partner's, a message's) differ only in the small vector of who is judged and which actions are given."""
         extra = [nn.functional.one_hot(viewpoint, self.n_agents).float(), others_actions(moves, given)]
         if self.with_message:
             assert received is not None, "V1 conditions on the received message"
             extra.append(self.head.encode(received).flatten(1))
-        return self.body(torch.cat([features, self.extra_in(torch.cat(extra, -1))], -1))[:, 0]
+        extra_hidden = self.extra_in(torch.cat(extra, -1))
+        first, flat = self.body[0], features.shape[1]
+        state_part = partial_linear(first, features, 0, bias=True).repeat_interleave(len(viewpoint) // len(features), 0)
+        return self.body[1:](state_part + partial_linear(first, extra_hidden, flat))[:, 0]
