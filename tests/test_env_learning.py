@@ -130,12 +130,14 @@ def test_rollouts_are_seeded() -> None:
 
 # ---------------------------------------------------------------------------------------------- credit
 class StubCritic(torch.nn.Module):
-    """V = 1000 t + 100 (viewpoint + 1) + sum_k given_k 2^k: every query tells which it was."""
+    """V = 1000 t + 100 (viewpoint + 1) + sum_k given_k 2^k: every query tells which it was. As `MlpCritic`, it
+    takes each state once for its consecutive queries."""
 
     with_message = False
 
     def forward(self, state: torch.Tensor, viewpoint: torch.Tensor, actions: Any, given: torch.Tensor, _: Any) -> Any:
-        return 1000 * state[:, 0] + 100 * (viewpoint + 1) + (given.float() * torch.tensor([1.0, 2.0, 4.0])).sum(1)
+        t = state[:, 0].repeat_interleave(len(viewpoint) // len(state))
+        return 1000 * t + 100 * (viewpoint + 1) + (given.float() * torch.tensor([1.0, 2.0, 4.0])).sum(1)
 
 
 def test_multi_recipient_credit_by_hand() -> None:
@@ -313,3 +315,29 @@ def test_running_norm_matches_the_pooled_statistics() -> None:
         torch.testing.assert_close(norm.mean[i], kept.mean(0))
         torch.testing.assert_close(norm.var[i], kept.var(0, unbiased=False))
     assert torch.equal(RunningNorm((3,), enabled=False)(x[0, 0, 0]), x[0, 0, 0])
+
+
+def test_the_critic_answers_k_queries_per_state_as_it_answers_each_alone() -> None:
+    """`MlpCritic` computes a state's share of the first layer once for its consecutive queries; values and
+    gradients are those of one state row per query."""
+    cfg = config(estimator="standard")
+    learner = EnvLearner(cfg, VecEnv(env_factory(cfg), 2).layout)
+    critic, L = learner.critic, learner.layout
+    torch.manual_seed(0)
+    S, k = 5, 3
+    state = torch.randn(S, L.state_size)
+    queries = (
+        torch.randint(0, L.n, (S * k,)),
+        torch.randint(0, 2, (S * k, L.n)),
+        torch.rand(S * k, L.n) < 0.5,
+        torch.randint(0, 2, (S * k, L.slots, L.bits), dtype=torch.uint8),
+    )
+    shared, one_each = critic(state, *queries), critic(state.repeat_interleave(k, 0), *queries)
+    torch.testing.assert_close(shared, one_each)
+    params = list(critic.parameters())
+    for g, e in zip(
+        torch.autograd.grad(shared.square().sum(), params),
+        torch.autograd.grad(one_each.square().sum(), params),
+        strict=True,
+    ):
+        torch.testing.assert_close(g, e)

@@ -47,9 +47,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--threads",
         type=integer(1, MAX_JOBS),
         default=None,
-        help="torch threads (default: the cores not busy by the load average, or OMP_NUM_THREADS when set; "
-        "threads on a busy core cost more than they give: with one other busy core, 2 threads trained 2.9x "
-        "slower than 1)",
+        help="torch threads (default: the cores not busy by the load average, or OMP_NUM_THREADS when set); "
+        "in sync mode 2 or more run the critic's step beside the policy's, half the threads each, so a run on "
+        "2 threads is the run on 1 bit for bit and a busy core does not stall it (before, with one other busy "
+        "core, 2 threads trained 2.9x slower than 1)",
     )
     p.add_argument(
         "--eval-episodes",

@@ -72,7 +72,7 @@ class EnvLearner:
         vp = viewpoint.repeat(M)
         alive = ro.alive[it, ib][rep]
         received = ro.received[it, ib][rep, vp] if self.critic.with_message else None
-        v = self.critic(ro.state[it, ib][rep], vp, ro.actions[it, ib][rep], given.repeat(M, 1) & alive, received)
+        v = self.critic(ro.state[it, ib], vp, ro.actions[it, ib][rep], given.repeat(M, 1) & alive, received)
         return v.view(M, q)
 
     @torch.no_grad()

@@ -21,6 +21,7 @@ from torch import nn
 
 from bitcomm.envs.vector import EnvLayout
 from bitcomm.policies.heads import MessageHead, make_head
+from bitcomm.policies.networks import partial_linear
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:
@@ -194,14 +195,15 @@ class MlpCritic(nn.Module):
         given: torch.Tensor,
         received: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """`state (M, Ds)`, `viewpoint (M,)`, `actions (M, n[, A])`, `given (M, n)`, `received (M, slots, K)`
-        -> `(M,)`."""
-        parts = [
-            self.state_norm(state.float()),
-            nn.functional.one_hot(viewpoint, self.layout.n).float(),
-            self.encode_actions(actions, given),
-        ]
+        """`state (S, Ds)`, `viewpoint (N,)`, `actions (N, n[, A])`, `given (N, n)`, `received (N, slots, K)` ->
+        `(N,)`, for N queries about S states, each state's N // S queries consecutive: the state's share of the
+        first layer is computed once per state (`partial_linear`)."""
+        parts = [nn.functional.one_hot(viewpoint, self.layout.n).float(), self.encode_actions(actions, given)]
         if self.with_message:
             assert received is not None, "V1 conditions on the received messages"
             parts.append(self.head.encode(received).flatten(1))
-        return self.out(self.body(torch.cat(parts, -1)))[:, 0]
+        first, size = self.body[0], self.layout.state_size
+        per_state = partial_linear(first, self.state_norm(state.float()), 0, bias=True)
+        per_query = partial_linear(first, torch.cat(parts, -1), size)
+        h = per_state.repeat_interleave(len(viewpoint) // len(state), 0) + per_query
+        return self.out(self.body[1:](h))[:, 0]
