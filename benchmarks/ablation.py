@@ -7,7 +7,8 @@ is epochs, minibatches and clip at once). The first row is the base itself, the 
 
 Every row trains improved + bitwise with `benchmarks/solve.py`'s `solve_seed` for `--minutes` of training per seed
 (evaluation excluded) and reports the episodes and seconds until sampled play is below 2x and 1.15x the oracle
-(confirmed on 2,000 fixed episodes) and the final sampled and greedy episode length. Rows run one after another,
+(confirmed on 2,000 fixed episodes) and the final sampled and greedy episode length (a row whose training diverges
+is measured at its last checkpoint and marked "then diverged"). Rows run one after another,
 each with the whole machine (`--threads` torch threads for synchronous rows; an asynchronous row runs its
 `workers` processes), so their seconds compare. Each row's result is kept in `<out>/<row>/result.json`: a
 stopped ablation rerun with the same flags skips finished rows.
@@ -80,7 +81,8 @@ def table(results: list[tuple[str, dict[str, Any], dict[str, Any]]], a: argparse
         shown = ", ".join(f"{k}={v}" for k, v in change.items()) if name not in (a.base, a.target) else "—"
         lines.append(
             f"| {name} | {shown} | {_cell(r['reached']['2x'])} | {_cell(r['reached']['1.15x'])} | "
-            f"{r['final_eval']['sampled']:.2f} | {r['final_eval']['greedy']:.2f} | {r['episodes']:,} |"
+            f"{r['final_eval']['sampled']:.2f} | {r['final_eval']['greedy']:.2f} | {r['episodes']:,}"
+            f"{' (then diverged)' if r.get('diverged') else ''} |"
         )
     return "\n".join(lines)
 

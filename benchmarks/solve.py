@@ -7,7 +7,8 @@ sampled play falls below 2x, 1.5x and 1.15x the oracle, and then until greedy pl
 episodes is below it AND `bitcomm eval` on 2,000 fixed episodes (sampled, seed 12345) confirms it;
 the greedy rung is checked with `bitcomm eval --greedy` after every chunk once 1.15x is reached.
 Training runs in chunks of `--chunk` episodes, each one resuming the run's checkpoint, so the
-checks happen between chunks; evaluation time is not counted as training time.
+checks happen between chunks; evaluation time is not counted as training time. A run whose weights become NaN
+or infinite stops there (`"diverged"` in its result says when) and is measured at its last checkpoint.
 Seeds run `--jobs` at a time, each in its own process with `--threads` torch threads.
 The last line printed is one JSON object.
 
@@ -51,9 +52,11 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
     """Train one seed chunk by chunk until the last rung is confirmed or the budget is spent."""
     import torch
 
+    from bitcomm.checkpoint import Diverged
     from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
     from bitcomm.learn.config import make_train_config
     from bitcomm.learn.run import train
+    from bitcomm.learn.run_folder import has_checkpoint
     from bitcomm.policies.evaluation import evaluate_checkpoint
 
     torch.set_num_threads(args["threads"])
@@ -73,10 +76,13 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
     reached: dict[str, dict[str, float] | None] = {name: None for name, _ in (*RUNGS, GREEDY_RUNG)}
     checks: list[dict[str, float]] = []
     episodes, wall, rolling, resume = 0, 0.0, float("nan"), False
+    diverged: str | None = None  # a run whose weights became NaN stops there; its last checkpoint is measured
     evaluated: dict[tuple[int, bool], float] = {}
 
     def play(greedy: bool) -> float:
         """Mean episode length of the latest checkpoint on the fixed episodes, evaluated once per checkpoint."""
+        if not has_checkpoint(run):  # diverged before its first checkpoint
+            return float("nan")
         if (episodes, greedy) not in evaluated:
             result = evaluate_checkpoint(run, args["eval_episodes"], EVAL_SEED, greedy=greedy)
             evaluated[episodes, greedy] = result.mean_episode_length
@@ -84,7 +90,11 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
 
     while wall < args["minutes"] * 60 and episodes < args["max_episodes"]:
         target = episodes + args["chunk"]
-        train(_with_budget(cfg, target), run, resume=resume, progress=False)
+        try:
+            train(_with_budget(cfg, target), run, resume=resume, progress=False)
+        except Diverged as err:
+            diverged = str(err)
+            print(f"seed {seed}: {diverged}", flush=True)
         resume = True
         row = _last_row(run)
         episodes, wall = int(row["episodes"]), float(row["wall_s"])
@@ -104,6 +114,8 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
             if greedy < GREEDY_RUNG[1] * oracle:
                 reached[GREEDY_RUNG[0]] = {"episodes": episodes, "wall_s": round(wall, 1), "eval": round(greedy, 3)}
                 break
+        if diverged is not None:
+            break
     final = {"sampled": play(greedy=False), "greedy": play(greedy=True)}
     return {
         "seed": seed,
@@ -114,6 +126,7 @@ def solve_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
         "final_eval": {k: round(v, 3) for k, v in final.items()},
         "final_rolling": round(rolling, 3),
         "checks": checks,
+        "diverged": diverged,
         "run": str(run),
     }
 

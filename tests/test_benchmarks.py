@@ -111,3 +111,27 @@ def test_update_profile_groups_an_update_s_time_and_ends_with_json() -> None:
     assert abs(sum(summary["shares"].values()) - 1.0) < 1e-3 and summary["shares"]["matrix products"] > 0
     bad = subprocess.run([*argv[:2], "--updates", "0"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "updates" in bad.stderr.strip().splitlines()[-1]
+
+
+def test_a_seed_that_diverges_stops_and_is_measured_at_its_last_checkpoint(tmp_path: Path, monkeypatch) -> None:
+    """`solve_seed` (and so every ablation row) records a divergence instead of crashing the whole study."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bitcomm.learn.run
+    from bitcomm.checkpoint import Diverged
+    from solve import solve_seed
+
+    real, calls = bitcomm.learn.run.train, []
+
+    def train_then_diverge(*args, **kwargs):  # the first chunk trains, the second diverges
+        calls.append(1)
+        if len(calls) > 1:
+            raise Diverged("training diverged after 40 episodes: policy.fc1.0.weight holds NaN or inf")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bitcomm.learn.run, "train", train_then_diverge)
+    args = {"recipe": "reinforced", "estimator": "improved", "messages": "bitwise", "size": 3, "bits": 4,
+            "threads": 1, "minutes": 1.0, "chunk": 16, "max_episodes": 64, "eval_episodes": 20,
+            "set": [("num_envs", 16), ("anneal_episodes", 64)], "out": str(tmp_path)}  # fmt: skip
+    result = solve_seed(args, 0)
+    assert len(calls) == 2 and result["episodes"] == 16 and "diverged after 40 episodes" in result["diverged"]
+    assert result["final_eval"]["sampled"] > 0  # measured at the checkpoint of the first chunk
