@@ -3,9 +3,9 @@
 Within one minibatch step the policy's update and the critic's share no parameters, no optimizer and no
 random numbers: the critic regresses on returns fixed before the update, the policy follows advantages fixed
 before it. So they can run at once, one on a helper thread, and the parameters after the update are the
-same bit for bit as one after the other (tested). On the default networks the matrices are too small for
-torch's own threads to use two cores well (docs/tuning.md, session 13): two steps side by side, each on one
-thread, do better than one step at a time on two.
+same bit for bit as one after the other on one thread (tested): a run on two threads is the run on one. On an
+idle machine this is as fast as one step at a time on torch's two threads; with another process busy on a core
+it is 2.3x faster, as two torch threads then wait on each other (docs/tuning.md, session 14).
 
     with critic_beside_policy(learner, threads):   # the synchronous trainers, with their torch threads
         learner.update(batch)
