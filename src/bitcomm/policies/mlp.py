@@ -21,7 +21,7 @@ from torch import nn
 
 from bitcomm.envs.vector import EnvLayout
 from bitcomm.policies.heads import MessageHead, make_head
-from bitcomm.policies.networks import partial_linear
+from bitcomm.policies.networks import concat_linear
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:
@@ -197,13 +197,10 @@ class MlpCritic(nn.Module):
     ) -> torch.Tensor:
         """`state (S, Ds)`, `viewpoint (N,)`, `actions (N, n[, A])`, `given (N, n)`, `received (N, slots, K)` ->
         `(N,)`, for N queries about S states, each state's N // S queries consecutive: the state's share of the
-        first layer is computed once per state (`partial_linear`)."""
+        first layer is computed once per state (`concat_linear`)."""
         parts = [nn.functional.one_hot(viewpoint, self.layout.n).float(), self.encode_actions(actions, given)]
         if self.with_message:
             assert received is not None, "V1 conditions on the received messages"
             parts.append(self.head.encode(received).flatten(1))
-        first, size = self.body[0], self.layout.state_size
-        per_state = partial_linear(first, self.state_norm(state.float()), 0, bias=True)
-        per_query = partial_linear(first, torch.cat(parts, -1), size)
-        h = per_state.repeat_interleave(len(viewpoint) // len(state), 0) + per_query
+        h = concat_linear(self.body[0], self.state_norm(state.float()), torch.cat(parts, -1))
         return self.out(self.body[1:](h))[:, 0]

@@ -98,12 +98,17 @@ class Marginals(nn.Module):
         return torch.cat(parts, 2).flatten(1)
 
 
-def partial_linear(layer: nn.Module, part: torch.Tensor, start: int, bias: bool = False) -> torch.Tensor:
-    """The share of `part` (the input columns from `start` on) in the linear `layer`'s output: a layer of a
-    concatenation is the sum of its parts' shares. Computed apart, a part that needs no gradient (features read
-    once per batch) costs the backward pass nothing, and one shared by several rows is multiplied once."""
+def concat_linear(layer: nn.Module, shared: torch.Tensor, own: torch.Tensor) -> torch.Tensor:
+    """`layer(cat([shared, own], -1))` for `shared (M, a)` and `own (N, b)`, each row of `shared` standing for N // M
+    consecutive rows of `own`: the sum of the two parts' products, so a part that needs no gradient (features read
+    once per batch) costs the backward pass nothing, and a row shared by several queries (a critic's state) is
+    multiplied once."""
     assert isinstance(layer, nn.Linear)
-    return nn.functional.linear(part, layer.weight[:, start : start + part.shape[1]], layer.bias if bias else None)
+    a = shared.shape[1]
+    out = nn.functional.linear(shared, layer.weight[:, :a], layer.bias)
+    if len(own) != len(shared):
+        out = out.repeat_interleave(len(own) // len(shared), 0)
+    return out + nn.functional.linear(own, layer.weight[:, a:])
 
 
 def _coord_planes(size: int) -> torch.Tensor:
@@ -217,10 +222,7 @@ class PolicyNet(nn.Module):
 
     def trunk(self, obs_features: torch.Tensor, received_encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Returns the first and second hidden layers."""
-        first = self.fc1[0]  # fc1 of the concatenation, as a sum of its two parts' products
-        flat = obs_features.shape[1]
-        heard = partial_linear(first, self.message_in(received_encoded), flat)
-        h1 = self.fc1[1:](partial_linear(first, obs_features, 0, bias=True) + heard)
+        h1 = self.fc1[1:](concat_linear(self.fc1[0], obs_features, self.message_in(received_encoded)))
         return h1, self.fc2(h1)
 
     def forward(self, planes: torch.Tensor, received: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -289,7 +291,4 @@ class CriticNet(nn.Module):
         if self.with_message:
             assert received is not None, "V1 conditions on the received message"
             extra.append(self.head.encode(received).flatten(1))
-        extra_hidden = self.extra_in(torch.cat(extra, -1))
-        first, flat = self.body[0], features.shape[1]
-        state_part = partial_linear(first, features, 0, bias=True).repeat_interleave(len(viewpoint) // len(features), 0)
-        return self.body[1:](state_part + partial_linear(first, extra_hidden, flat))[:, 0]
+        return self.body[1:](concat_linear(self.body[0], features, self.extra_in(torch.cat(extra, -1))))[:, 0]
