@@ -12,10 +12,11 @@ The last line printed is one JSON object.
 each multi-pass recipe with `epochs=1, minibatches=1` (one gradient step per batch, the plain batched
 actor-critic), so the trainer's own cost and the recipe's reuse can be told apart in one run.
 `--num-envs N` sets every recipe's episodes per batch: `--recipes paper --num-envs 64` is the paper's
-network and update over the batches `reinforced` uses.
+network and update over the batches `reinforced` uses. `--size`, `--bits` and `--messages` time another
+task or message head (`--size 32 --bits 10 --messages onehot`: a one-hot head of 1,024 outputs).
 
     python benchmarks/train_speed.py [--modes sync,a3c] [--recipes paper,reinforced] [--batches 3] [--single-pass]
-        [--num-envs N]
+        [--num-envs N] [--size S] [--bits K] [--messages bitwise|onehot]
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from pathlib import Path
 
 import torch
 
-from bitcomm.config import TaskConfig
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError, check_int
 from bitcomm.learn.config import RECIPES, make_train_config
 from bitcomm.learn.run import train
@@ -43,6 +44,8 @@ def measure(
     workers: int,
     single_pass: bool = False,
     num_envs: int | None = None,
+    task: TaskConfig | None = None,
+    messages: str | None = None,
 ) -> dict[str, float]:
     num_envs = RECIPES[recipe]["num_envs"] if num_envs is None else num_envs
     reuse = dict(epochs=1, minibatches=1) if single_pass else {}
@@ -52,8 +55,9 @@ def measure(
     episodes = (batches + warmup) * w * num_envs
     cfg = make_train_config(
         recipe,
-        TaskConfig(),
+        task or TaskConfig(),
         mode=mode,
+        messages=messages,
         workers=workers,
         num_envs=num_envs,
         episodes=episodes,
@@ -94,12 +98,18 @@ def main() -> None:
         "--single-pass", action="store_true", help="also time each multi-pass recipe with epochs=1, minibatches=1"
     )
     ap.add_argument("--num-envs", type=int, default=None, help="episodes per batch (default: each recipe's)")
+    ap.add_argument("--size", type=int, default=EnvConfig.size, help="grid size (default %(default)s)")
+    ap.add_argument("--bits", type=int, default=ChannelConfig.bits, help="message bits K (default %(default)s)")
+    ap.add_argument("--messages", default=None, help="message head, bitwise or onehot (default: each recipe's)")
     args = ap.parse_args()
     recipes, modes = args.recipes.split(","), args.modes.split(",")
     try:  # bad input is one line before anything runs
+        task = TaskConfig(env=EnvConfig(size=args.size), channel=ChannelConfig(bits=args.bits))
         for recipe in recipes:
             for mode in modes:
-                make_train_config(recipe, mode=mode, workers=args.workers, num_envs=args.num_envs)
+                make_train_config(
+                    recipe, task, mode=mode, workers=args.workers, num_envs=args.num_envs, messages=args.messages
+                )
         for name in ("threads", "batches", "warmup"):  # timing starts after the last warm-up batch
             check_int(name, getattr(args, name), 1)
     except ConfigError as err:
@@ -110,7 +120,17 @@ def main() -> None:
         multi_pass = RECIPES[recipe]["epochs"] * RECIPES[recipe]["minibatches"] > 1
         for single_pass in (False, True) if args.single_pass and multi_pass else (False,):
             for mode in modes:
-                r = measure(mode, recipe, args.batches, args.warmup, args.workers, single_pass, args.num_envs)
+                r = measure(
+                    mode,
+                    recipe,
+                    args.batches,
+                    args.warmup,
+                    args.workers,
+                    single_pass,
+                    args.num_envs,
+                    task,
+                    args.messages,
+                )
                 name = f"{mode}/{recipe}" + ("/single-pass" if single_pass else "")
                 results[name] = r
                 print(
@@ -118,7 +138,8 @@ def main() -> None:
                     f"{r['agent_steps_per_s']:>10,.0f} agent-steps/s ({r['agent_steps']} steps in {r['wall_s']} s)",
                     flush=True,
                 )
-    summary = {"benchmark": "train_speed", "task": "default", "torch_threads": args.threads, "results": results}
+    task_name = f"{args.size}x{args.size}, K={args.bits}" + (f", {args.messages}" if args.messages else "")
+    summary = {"benchmark": "train_speed", "task": task_name, "torch_threads": args.threads, "results": results}
     print(json.dumps(summary))
 
 

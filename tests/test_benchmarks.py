@@ -30,6 +30,18 @@ def test_train_speed_times_the_default_recipe_and_its_single_pass_variant_and_en
         assert r["num_envs"] == 8 and r["batches"] == 1 and r["agent_steps"] > 0 and r["agent_steps_per_s"] > 0
 
 
+def test_train_speed_times_another_task_and_head_and_refuses_a_bad_head_in_one_line() -> None:
+    argv = [sys.executable, "benchmarks/train_speed.py", "--modes", "sync", "--recipes", "reinforced", "--batches", "1",
+            "--num-envs", "4", "--threads", "1", "--size", "5", "--bits", "5", "--messages"]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([*argv, "onehot"], cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    assert summary["task"] == "5x5, K=5, onehot" and summary["results"]["sync/reinforced"]["agent_steps"] > 0
+    bad = subprocess.run([*argv, "morse"], cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert bad.returncode == 2 and "messages='morse'" in bad.stderr and "Traceback" not in bad.stderr
+
+
 def test_ablation_rows_are_single_changes_that_build_valid_configs() -> None:
     """Every row of `benchmarks/ablation.py` is a config the library accepts; the rows between the two recipes
     each change one option (or one group), and the last is the target itself."""

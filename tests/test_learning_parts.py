@@ -292,3 +292,13 @@ def test_reading_the_observations_once_per_update_makes_the_same_update(encoder,
     learner = Learner(make_train_config("reinforced", TINY, encoder=encoder, estimator=estimator))
     assert learner.policy.fixed_features == learner.critic.fixed_features == (encoder != "conv")
     assert all(torch.equal(a, b) for a, b in zip(trained(True), trained(False), strict=True))
+
+
+def test_onehot_samples_follow_the_softmax_including_messages_of_probability_zero():
+    head = OneHotHead(3)
+    logits = torch.tensor([[0.0, 1.0, -float("inf"), 2.0, -1.0, -float("inf"), 0.5, 0.0]]).expand(40_000, 8)
+    index = bits_to_index(head.sample(logits, torch.Generator().manual_seed(0)))
+    freq = torch.bincount(index, minlength=8).float() / len(index)
+    p = torch.softmax(logits[0], -1)
+    assert freq[2] == 0 and freq[5] == 0
+    assert torch.allclose(freq, p, atol=4 * (p * (1 - p) / len(index)).sqrt().max().item())

@@ -97,9 +97,12 @@ class OneHotHead:
         return -(logp.exp() * logp).sum(-1)
 
     def sample(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        probs = torch.softmax(logits.reshape(-1, self.out_features), -1)
-        index = torch.multinomial(probs, 1, generator=generator)[:, 0].reshape(logits.shape[:-1])
-        return index_to_bits(index, self.bits)
+        """By the inverse of the cumulative distribution: one uniform number per message, where
+        `torch.multinomial` draws one per outcome (at K = 10, 1,024 of them: most of a rollout's time)."""
+        cdf = torch.softmax(logits.reshape(-1, self.out_features), -1).cumsum(-1)
+        u = torch.rand(cdf.shape[0], 1, generator=generator, device=logits.device) * cdf[:, -1:]
+        index = torch.searchsorted(cdf, u, right=True).clamp_(max=self.out_features - 1)
+        return index_to_bits(index[:, 0].reshape(logits.shape[:-1]), self.bits)
 
     def mode(self, logits: torch.Tensor) -> torch.Tensor:
         return index_to_bits(logits.argmax(-1), self.bits)
