@@ -15,6 +15,7 @@ from typing import Any
 from bitcomm.config import TaskConfig
 from bitcomm.errors import bad_value, check_int, check_number, is_number
 from bitcomm.learn.estimators import ESTIMATORS
+from bitcomm.learn.precision import UPDATE_DTYPES
 from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, RECIPES
 from bitcomm.policies.heads import MESSAGE_HEADS
 from bitcomm.policies.networks import ModelConfig
@@ -100,6 +101,10 @@ class TrainConfig:
     anneal_episodes: int = 0
     """Episodes over which `anneal_lr` and `anneal_entropy` decay (0: the budget, `episodes`): a run trained
     in pieces (each resumed with a larger budget, as benchmarks/solve.py does) keeps one schedule."""
+    update_dtype: str = "float32"
+    """Precision of the update's network passes, `float32` or `bfloat16` (bitcomm.learn.precision): bfloat16
+    matrix products under `torch.autocast`, about half the cost on CPUs with native bfloat16 (AVX512-BF16,
+    AMX) and more on others; acting, log-probabilities, weights and optimizer stay float32."""
     map_lr: float = 0.01
     """Adam learning rate of the message-map decoder (ModelConfig.message_map), which starts at zero
     (a uniform map); a decoder is a small linear read-out that the policy's rate would fit slowly."""
@@ -115,6 +120,8 @@ class TrainConfig:
             raise bad_value("messages", self.model.messages, f"choose one of {', '.join(MESSAGE_HEADS)}")
         if self.mode not in MODES:
             raise bad_value("mode", self.mode, f"choose one of {', '.join(MODES)}")
+        if self.update_dtype not in UPDATE_DTYPES:
+            raise bad_value("update_dtype", self.update_dtype, f"choose one of {', '.join(UPDATE_DTYPES)}")
         if self.backend not in BACKENDS:
             raise bad_value("backend", self.backend, f"choose one of {', '.join(BACKENDS)}")
         if self.backend == "ray" and self.mode != "sync":

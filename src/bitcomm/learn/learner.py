@@ -23,6 +23,7 @@ from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
 from bitcomm.learn.objectives import Routes, StepBatch, Term, clip_groups, critic_mse, policy_terms
+from bitcomm.learn.precision import update_precision
 from bitcomm.learn.rollout import Rollout
 from bitcomm.policies.networks import CriticNet, PolicyNet
 
@@ -156,11 +157,13 @@ class Learner:
     ) -> torch.Tensor:
         """MSE to Q_t `returns (T, B)` of every query the critic answers (action baselines, plus message
         baselines when a message has several recipients) at the rollout's steps `(it, ib)`."""
-        state_feats, moves, received = self._state_features(ro, it, ib, features), ro.moves[it, ib], ro.received[it, ib]
-        values = [self._values(state_feats, moves, received, *self._action_queries())]
-        if not self.single_recipient:
-            values.append(self._values(state_feats, moves, received, *self._message_queries()))
-        return critic_mse(torch.cat(values, 1), returns[it, ib])
+        moves, received = ro.moves[it, ib], ro.received[it, ib]
+        with update_precision(self.cfg.update_dtype):
+            state_feats = self._state_features(ro, it, ib, features)
+            values = [self._values(state_feats, moves, received, *self._action_queries())]
+            if not self.single_recipient:
+                values.append(self._values(state_feats, moves, received, *self._message_queries()))
+        return critic_mse(torch.cat(values, 1).float(), returns[it, ib])
 
     @torch.no_grad()
     def read_features(self, ro: Rollout) -> BatchFeatures:
@@ -221,12 +224,15 @@ class Learner:
         it, ib = valid.nonzero(as_tuple=True)
         received = ro.received[it, cols[ib]]  # (M, n, slots, K)
         encoded = policy.encode_received(received.flatten(0, 1))
-        if features is not None and features.policy is not None:
-            feats = features.policy[it, cols[ib]].flatten(0, 1)
-        else:
-            feats = policy.observation_features(ro.planes[it, cols[ib]].flatten(0, 1), encoded)
-        h1, h2 = policy.trunk(feats, encoded)
-        return _Forward(cols, it, ib, received, encoded, feats, h1, policy.message_logits(h2), policy.move_logits(h2))
+        with update_precision(self.cfg.update_dtype):  # what the terms compute from these passes is float32
+            if features is not None and features.policy is not None:
+                feats = features.policy[it, cols[ib]].flatten(0, 1)
+            else:
+                feats = policy.observation_features(ro.planes[it, cols[ib]].flatten(0, 1), encoded)
+            h1, h2 = policy.trunk(feats, encoded)
+            msg_logits, move_logits = policy.message_logits(h2), policy.move_logits(h2)
+        passes = (feats, h1, msg_logits, move_logits)
+        return _Forward(cols, it, ib, received, encoded, *(x.float() for x in passes))
 
     def _batch(self, ro: Rollout, fw: _Forward, adv: Advantages | None = None) -> StepBatch:
         return StepBatch(
