@@ -36,7 +36,7 @@ def test_a_bfloat16_update_moves_the_weights_as_the_float32_one_does(estimator):
     for name, w in half.policy.state_dict().items():
         assert w.dtype == torch.float32
         step_full, step_half = full.policy.state_dict()[name] - start[name], w - start[name]
-        if step_full.abs().max() > 0:  # the same direction and size, to bfloat16's precision
+        if step_full.abs().max() > 0:  # the same direction, to bfloat16's precision
             cos = torch.nn.functional.cosine_similarity(step_full.flatten(), step_half.flatten(), 0)
             assert cos > 0.9, name
     assert all(p.dtype == torch.float32 for p in half.critic.parameters())
