@@ -6,7 +6,11 @@ group of operators (matrix products, activations, indexing and copies, the optim
 slowest operators. The last line printed is one JSON object. It answers "what would a faster update have
 to remove": `benchmarks/train_speed.py` measures the throughput itself.
 
+`--size`, `--bits` and `--messages` profile another task or message head (`--size 32 --bits 10 --messages
+onehot`: the 1,024-output head of the 32x32 study).
+
     python benchmarks/update_profile.py [--recipe reinforced] [--updates 3] [--threads 1] [--num-envs N]
+        [--size S] [--bits K] [--messages bitwise|onehot]
 """
 
 from __future__ import annotations
@@ -19,7 +23,9 @@ import numpy as np
 import torch
 from torch.profiler import ProfilerActivity, profile
 
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError, check_int
+from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.config import make_train_config
 from bitcomm.learn.learner import Learner
 from bitcomm.learn.recipes import RECIPES
@@ -45,13 +51,18 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--num-envs", type=int, default=None, help="episodes in the batch (default: the recipe's)")
     ap.add_argument("--top", type=int, default=10, help="slowest operators listed")
+    ap.add_argument("--size", type=int, default=EnvConfig.size, help="grid size (default %(default)s)")
+    ap.add_argument("--bits", type=int, default=ChannelConfig.bits, help="message bits K (default %(default)s)")
+    ap.add_argument("--messages", default=None, help="message head, bitwise or onehot (default: the recipe's)")
     a = ap.parse_args()
     try:  # bad input is one line before anything runs
         for name in ("updates", "threads", "top"):
             check_int(name, getattr(a, name), 1)
-        cfg = make_train_config(a.recipe, num_envs=a.num_envs, mode="sync")
+        task = TaskConfig(env=EnvConfig(size=a.size), channel=ChannelConfig(bits=a.bits))
+        cfg = make_train_config(a.recipe, task, num_envs=a.num_envs, messages=a.messages, mode="sync")
     except ConfigError as err:
         ap.error(str(err))
+    keep_freed_memory()  # as training does
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
     learner, generator = Learner(cfg), torch.Generator().manual_seed(0)
@@ -68,7 +79,8 @@ def main() -> None:
     agent_steps = int(ro.length.sum()) * cfg.task.env.n_agents
     per_update = total / 1e6 / a.updates
     print(
-        f"{a.recipe}: {agent_steps:,} agent-steps per batch, {cfg.epochs} epochs x {cfg.minibatches} minibatches, "
+        f"{a.recipe} ({a.size}x{a.size}, K={a.bits}, {cfg.model.messages}): {agent_steps:,} agent-steps per batch, "
+        f"{cfg.epochs} epochs x {cfg.minibatches} minibatches, "
         f"{per_update:.3f} s of CPU per update ({a.threads} thread(s), profiler overhead included)"
     )
     for g, share in sorted(shares.items(), key=lambda kv: -kv[1]):
@@ -79,6 +91,7 @@ def main() -> None:
     summary = {
         "benchmark": "update_profile",
         "recipe": a.recipe,
+        "task": f"{a.size}x{a.size}, K={a.bits}, {cfg.model.messages}",
         "threads": a.threads,
         "agent_steps_per_batch": agent_steps,
         "cpu_s_per_update": round(per_update, 4),

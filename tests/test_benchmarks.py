@@ -120,9 +120,31 @@ def test_update_profile_groups_an_update_s_time_and_ends_with_json() -> None:
     assert out.returncode == 0, out.stderr
     summary = json.loads(out.stdout.strip().splitlines()[-1])
     assert summary["agent_steps_per_batch"] > 0 and summary["cpu_s_per_update"] > 0
+    assert summary["task"] == "10x10, K=7, bitwise"
     assert abs(sum(summary["shares"].values()) - 1.0) < 1e-3 and summary["shares"]["matrix products"] > 0
     bad = subprocess.run([*argv[:2], "--updates", "0"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "updates" in bad.stderr.strip().splitlines()[-1]
+
+
+def test_update_profile_profiles_another_task_and_head() -> None:
+    argv = [sys.executable, "benchmarks/update_profile.py", "--num-envs", "4", "--updates", "1",
+            "--size", "5", "--bits", "5"]  # fmt: skip
+    out = subprocess.run([*argv, "--messages", "onehot"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout.strip().splitlines()[-1])["task"] == "5x5, K=5, onehot"
+    bad = subprocess.run([*argv, "--messages", "morse"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "messages='morse'" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_allocator_times_both_settings_in_turn_and_ends_with_json() -> None:
+    argv = [sys.executable, "benchmarks/allocator.py", "--size", "5", "--bits", "4", "--num-envs", "4", "--rounds", "1"]
+    out = subprocess.run([*argv, "--updates", "1"], cwd=ROOT, capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    assert summary["task"] == "5x5, K=4, onehot" and summary["update_speedup"] > 0
+    assert set(summary["median"]) == {"on", "off"} and all(m["update_s"] > 0 for m in summary["median"].values())
+    bad = subprocess.run([*argv, "--updates", "0"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "updates" in bad.stderr.strip().splitlines()[-1] and "Traceback" not in bad.stderr
 
 
 def test_a_seed_that_diverges_stops_and_is_measured_at_its_last_checkpoint(tmp_path: Path, monkeypatch) -> None:

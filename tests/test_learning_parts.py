@@ -294,6 +294,40 @@ def test_reading_the_observations_once_per_update_makes_the_same_update(encoder,
     assert all(torch.equal(a, b) for a, b in zip(trained(True), trained(False), strict=True))
 
 
+@pytest.mark.parametrize("head", [OneHotHead(4), BitwiseHead(4)], ids=lambda h: h.name)
+def test_log_prob_and_entropy_together_equal_each_alone_in_value_and_gradient(head):
+    g = torch.Generator().manual_seed(0)
+    logits = (3 * torch.randn(64, head.out_features, generator=g, dtype=torch.float64)).requires_grad_()
+    bits = head.sample(logits.detach(), g)
+    w_logp, w_entropy = torch.randn(2, 64, generator=g, dtype=torch.float64)
+
+    def grad_of(logp: torch.Tensor, entropy: torch.Tensor) -> torch.Tensor:
+        (grad,) = torch.autograd.grad((w_logp * logp).sum() + (w_entropy * entropy).sum(), logits)
+        return grad
+
+    together = head.log_prob_and_entropy(logits, bits)
+    alone = head.log_prob(logits, bits), head.entropy(logits)
+    assert torch.allclose(together[0], alone[0]) and torch.allclose(together[1], alone[1])
+    assert torch.allclose(grad_of(*together), grad_of(*alone))
+    few = logits[:4].detach().requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: head.log_prob_and_entropy(x, bits[:4]), (few,))
+
+
+@pytest.mark.parametrize("head", [OneHotHead(3), BitwiseHead(3)], ids=lambda h: h.name)
+@pytest.mark.parametrize("slots", [1, 2])
+def test_a_layer_reads_received_bits_as_it_would_read_their_encoding(head, slots):
+    g = torch.Generator().manual_seed(0)
+    received = torch.randint(0, 2, (32, slots, 3), generator=g, dtype=torch.uint8)
+    weight = torch.randn(5, slots * head.in_features, generator=g, dtype=torch.float64, requires_grad=True)
+    bias = torch.randn(5, generator=g, dtype=torch.float64, requires_grad=True)
+    upstream = torch.randn(32, 5, generator=g, dtype=torch.float64)
+    dense = torch.nn.functional.linear(head.encode(received).flatten(1).double(), weight, bias)
+    read = head.linear(received, weight, bias)
+    assert torch.allclose(read, dense)
+    grads = [torch.autograd.grad((upstream * out).sum(), (weight, bias)) for out in (read, dense)]
+    assert all(torch.allclose(a, b) for a, b in zip(*grads, strict=True))
+
+
 def test_onehot_samples_follow_the_softmax_including_messages_of_probability_zero():
     head = OneHotHead(3)
     logits = torch.tensor([[0.0, 1.0, -float("inf"), 2.0, -1.0, -float("inf"), 0.5, 0.0]]).expand(40_000, 8)

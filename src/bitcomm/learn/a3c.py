@@ -29,6 +29,7 @@ import torch.multiprocessing as mp
 from torch import nn
 
 from bitcomm.checkpoint import first_nonfinite
+from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.run_folder import (
@@ -126,6 +127,7 @@ def _worker(
         from bitcomm.learn.rollout import Collector
 
         torch.set_num_threads(1)
+        keep_freed_memory()
         worker_seed = np.random.SeedSequence(cfg.seed, spawn_key=(1 << 30, w)).generate_state(2)
         torch.manual_seed(int(worker_seed[0]))
         generator = torch.Generator().manual_seed(int(worker_seed[1]))

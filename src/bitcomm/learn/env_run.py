@@ -20,6 +20,7 @@ import torch
 
 from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_weights
 from bitcomm.errors import ConfigError
+from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.env_config import EnvTrainConfig, is_env_config
 from bitcomm.learn.env_learner import EnvLearner
@@ -42,6 +43,7 @@ from bitcomm.run_lock import run_lock
 def train_env(cfg: EnvTrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
     """Train until `cfg.episodes` episodes are played (whole batches); returns the latest checkpoint."""
     out = Path(out)
+    keep_freed_memory()
     if resume and not has_checkpoint(out):
         raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
     # refuses a bad env or channel before the folder is touched; closed (its workers stopped) however the run ends

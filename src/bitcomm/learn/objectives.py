@@ -69,7 +69,7 @@ class StepBatch:
         it: torch.Tensor,
         ib: torch.Tensor,
         received: torch.Tensor,
-        encoded: torch.Tensor,
+        encoded: torch.Tensor | None,
         feats: torch.Tensor,
         h1: torch.Tensor,
         msg_logits: torch.Tensor,
@@ -79,7 +79,7 @@ class StepBatch:
     ) -> None:
         self.ro, self.adv, self.cols, self.it, self.ib = ro, adv, cols, it, ib
         self.received = received  # (M, n, slots, K)
-        self.encoded = encoded  # (M * n, slots * in_features): the received messages as the policy reads them
+        self.encoded = encoded  # (M * n, slots * in_features): the received messages encoded (with a message map)
         self.feats = feats  # (M * n, flat)
         self.h1 = h1
         self.msg_logits, self.move_logits = msg_logits, move_logits  # (M * n, .)
@@ -93,7 +93,7 @@ class StepBatch:
         ro, it, ib, n = self.ro, self.it, self.ib, self.n
         bc, M = self.cols[ib], it.shape[0]
         logp_move = torch.log_softmax(self.move_logits, -1).gather(-1, ro.moves[it, bc].view(-1, 1)).view(M, n)
-        logp_msg = self.policy.head.log_prob(self.msg_logits, ro.bits[it, bc].flatten(0, 1)).view(M, n)
+        logp_msg = self.msg_log_prob_and_entropy[0].view(M, n)
 
         def full(x: torch.Tensor) -> torch.Tensor:  # (M, n) sample values -> (T, Bc, n)
             out = torch.zeros(ro.valid.shape[0], self.cols.shape[0], n, dtype=x.dtype)
@@ -101,6 +101,13 @@ class StepBatch:
             return out
 
         return full(logp_move), full(logp_msg)
+
+    @functools.cached_property
+    def msg_log_prob_and_entropy(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """`(M * n,)` log Pm(m_t) of the sent messages and the entropy of Pm, computed together (one-hot: from
+        one log-softmax, see `OneHotHead.log_prob_and_entropy`)."""
+        bits = self.ro.bits[self.it, self.cols[self.ib]].flatten(0, 1)
+        return self.policy.head.log_prob_and_entropy(self.msg_logits, bits)
 
     @functools.cached_property
     def sub_advantages(self) -> Advantages:
@@ -192,7 +199,7 @@ class Entropy:
             logp = b.move_log_softmax
             h = -(logp.exp() * logp).sum(-1).mean()
         else:
-            h = b.policy.head.entropy(b.msg_logits).mean()
+            h = b.msg_log_prob_and_entropy[1].mean()
         return -(b.n * (self.weight * h)), {f"charts/{self.name}": h.item()}
 
 
@@ -263,11 +270,12 @@ class GoalTerm:
         if policy.message_map is not None:
             _, present = message_sources(b)
             label = goal[:, b.routes.slot_goal].flatten()
+            assert b.encoded is not None, "a message map's pass encodes the received messages"
             ce = F.cross_entropy(policy.map_logits(b.encoded).flatten(0, 1), label, reduction="none")
             mask = present.flatten().float()
             loss = (ce * mask).sum() / mask.sum().clamp(min=1)
         else:
-            h1_heard, _ = policy.trunk(b.feats, heard(b, self.channel_noise))
+            h1_heard, _ = policy.trunk(b.feats, policy.message_in(heard(b, self.channel_noise)))
             loss = cell_loss(policy.goal_logits(h1_heard), goal.flatten(), size)
         return self.weight * loss, {"losses/goal": loss.item()}
 

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from bitcomm.errors import ConfigError, bad_value
+from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.learn.run_folder import (
@@ -70,6 +71,7 @@ class RolloutWorker:
 
     def __init__(self, config: dict[str, Any]) -> None:
         torch.set_num_threads(1)
+        keep_freed_memory()
         self.cfg = TrainConfig.from_dict(config)
         self.policy = PolicyNet(self.cfg.task, self.cfg.model)
         self.collector = Collector(self.cfg.training_task, self.cfg.num_envs)

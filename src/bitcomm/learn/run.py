@@ -24,6 +24,7 @@ from bitcomm.checkpoint import (
     LATEST,
 )
 from bitcomm.errors import ConfigError
+from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.run_folder import (
@@ -47,6 +48,7 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = Tr
     """Train in `cfg.mode` (or on Ray, at the cluster `address`) until `cfg.episodes` episodes are played;
     returns the latest checkpoint."""
     out = Path(out)
+    keep_freed_memory()
     if resume and not has_checkpoint(out):
         raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
     try:

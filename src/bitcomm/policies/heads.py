@@ -11,6 +11,8 @@ A new head touches this file only: the policy never asks which head it has.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import torch.nn.functional as F
 
@@ -31,8 +33,13 @@ class BitwiseHead:
     def encode(self, bits: torch.Tensor) -> torch.Tensor:
         return bits.float()
 
+    def linear(self, received: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+        """`F.linear(encode(received).flatten(1), weight, bias)` for `(N, slots, K)` received bits: a layer
+        reading them."""
+        return F.linear(received.flatten(1).to(weight.dtype), weight, bias)
+
     def log_prob(self, logits: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
-        return -F.binary_cross_entropy_with_logits(logits, bits.float(), reduction="none").sum(-1)
+        return -F.binary_cross_entropy_with_logits(logits, bits.to(logits.dtype), reduction="none").sum(-1)
 
     def log_prob_terms(self, logits: torch.Tensor) -> torch.Tensor:
         """`(N, K)` logits -> `(N, 2K)` log P(bit = 1) and log P(bit = 0): every message's log-probability
@@ -47,6 +54,10 @@ class BitwiseHead:
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         p = torch.sigmoid(logits)
         return F.binary_cross_entropy_with_logits(logits, p, reduction="none").sum(-1)
+
+    def log_prob_and_entropy(self, logits: torch.Tensor, bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`log_prob(logits, bits)` and `entropy(logits)`, what an update needs of every sent message."""
+        return self.log_prob(logits, bits), self.entropy(logits)
 
     def sample(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         u = torch.rand(logits.shape, generator=generator, device=logits.device)
@@ -82,6 +93,14 @@ class OneHotHead:
     def encode(self, bits: torch.Tensor) -> torch.Tensor:
         return F.one_hot(bits_to_index(bits), self.out_features).float()
 
+    def linear(self, received: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+        """`F.linear(encode(received).flatten(1), weight, bias)` for `(N, slots, K)` received bits, as the sum of
+        the weight's columns of the messages that arrived: the product with a 2^K-wide one-hot and its gradient
+        cost 15x more (docs/tuning.md, session 16)."""
+        slot = torch.arange(received.shape[-2], device=received.device) * self.in_features
+        out = F.embedding(bits_to_index(received) + slot, weight.T).sum(-2)
+        return out if bias is None else out + bias
+
     def log_prob(self, logits: torch.Tensor, bits: torch.Tensor) -> torch.Tensor:
         return torch.log_softmax(logits, -1).gather(-1, bits_to_index(bits)[..., None])[..., 0]
 
@@ -95,6 +114,12 @@ class OneHotHead:
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         logp = torch.log_softmax(logits, -1)
         return -(logp.exp() * logp).sum(-1)
+
+    def log_prob_and_entropy(self, logits: torch.Tensor, bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`log_prob(logits, bits)` and `entropy(logits)` from one log-softmax, with their gradient in closed
+        form: over 2^K outputs, autograd's graph of the two (two log-softmaxes, the gather's zero-filled
+        gradient, the entropy's products) is most of a one-hot update's time (docs/tuning.md, session 16)."""
+        return _LogProbAndEntropy.apply(logits, bits_to_index(bits))
 
     def sample(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """By the inverse of the cumulative distribution: one uniform number per message, where
@@ -120,6 +145,25 @@ class OneHotHead:
         q = torch.softmax(logits + noise * torch.randn_like(logits), -1)
         perm = torch.arange(self.out_features, device=logits.device) ^ bits_to_index(flips)[..., None]
         return q.gather(-1, perm)
+
+
+class _LogProbAndEntropy(torch.autograd.Function):
+    """`(N, C)` logits and `(N,)` indices -> log p_index and H(p), p = softmax(logits). Gradients:
+    d log p_i / d logits = onehot(i) - p, and dH / d logits = -p * (log p + H)."""
+
+    @staticmethod
+    def forward(ctx: Any, logits: torch.Tensor, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[override]
+        logp = torch.log_softmax(logits, -1)
+        p = logp.exp()
+        entropy = -(p * logp).sum(-1)
+        ctx.save_for_backward(logp, p, entropy, index)
+        return logp.gather(-1, index[..., None])[..., 0], entropy
+
+    @staticmethod
+    def backward(ctx: Any, g_logp: torch.Tensor, g_entropy: torch.Tensor) -> tuple[torch.Tensor, None]:  # type: ignore[override]
+        logp, p, entropy, index = ctx.saved_tensors
+        grad = (logp + entropy[..., None]).mul_(g_entropy[..., None]).add_(g_logp[..., None]).mul_(p).neg_()
+        return grad.scatter_add_(-1, index[..., None], g_logp[..., None]), None
 
 
 MessageHead = BitwiseHead | OneHotHead

@@ -220,15 +220,22 @@ class PolicyNet(nn.Module):
         """`(N, slots, K)` bits -> `(N, slots * in_features)` as this head's receiver reads them."""
         return self.head.encode(received).flatten(1)
 
-    def trunk(self, obs_features: torch.Tensor, received_encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Returns the first and second hidden layers."""
-        h1 = self.fc1[1:](concat_linear(self.fc1[0], obs_features, self.message_in(received_encoded)))
+    def read_received(self, received: torch.Tensor) -> torch.Tensor:
+        """`(N, slots, K)` bits -> `(N, message_hidden)`: `message_in(encode_received(received))`, with the head's
+        own product (`MessageHead.linear`: a one-hot is read by its weight's columns)."""
+        layer: nn.Linear = self.message_in[0]  # type: ignore[assignment]
+        return self.message_in[1:](self.head.linear(received, layer.weight, layer.bias))
+
+    def trunk(self, obs_features: torch.Tensor, message_features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first and second hidden layers, from the observation's features and the received messages'
+        (`read_received`, or `message_in` of a soft encoding)."""
+        h1 = self.fc1[1:](concat_linear(self.fc1[0], obs_features, message_features))
         return h1, self.fc2(h1)
 
     def forward(self, planes: torch.Tensor, received: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Move logits `(N, 5)` and message logits `(N, out)` for `(N, 2, S, S)` planes and `(N, slots, K)` bits."""
-        encoded = self.encode_received(received)
-        _, h2 = self.trunk(self.observation_features(planes, encoded), encoded)
+        encoded = self.encode_received(received) if self.message_map is not None else None
+        _, h2 = self.trunk(self.observation_features(planes, encoded), self.read_received(received))
         return self.move_logits(h2), self.message_logits(h2)
 
 
@@ -287,8 +294,11 @@ class CriticNet(nn.Module):
         queries about M states, each state's N // M queries consecutive. The state's share of the first layer is
         computed once per state, not once per query: the queries about one state (an agent's action baseline,
         its partner's, a message's) differ only in the small vector of who is judged and which actions are given."""
-        extra = [nn.functional.one_hot(viewpoint, self.n_agents).float(), others_actions(moves, given)]
+        small = torch.cat([nn.functional.one_hot(viewpoint, self.n_agents).float(), others_actions(moves, given)], -1)
+        layer: nn.Linear = self.extra_in[0]  # type: ignore[assignment]
+        a = small.shape[1]
+        extra = nn.functional.linear(small, layer.weight[:, :a], layer.bias)
         if self.with_message:
             assert received is not None, "V1 conditions on the received message"
-            extra.append(self.head.encode(received).flatten(1))
-        return self.body[1:](concat_linear(self.body[0], features, self.extra_in(torch.cat(extra, -1))))[:, 0]
+            extra = extra + self.head.linear(received, layer.weight[:, a:])  # the messages' columns of the layer
+        return self.body[1:](concat_linear(self.body[0], features, self.extra_in[1:](extra)))[:, 0]
