@@ -345,9 +345,12 @@ def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
     return record
 
 
-def _init_worker() -> None:
+def _init_worker(parent: int) -> None:
     import torch
 
+    from bitcomm.worker_exit import end_with_parent
+
+    end_with_parent(parent)  # a study killed alone must not leave its runs training
     torch.set_num_threads(1)  # parallel runs must not share (or fight over) thread pools
 
 
@@ -397,7 +400,7 @@ def execute_all(
     workers = plural(processes, "process", "processes")
     log(f"{plural(len(runs), 'run', 'runs')}, {len(runs) - len(todo)} finished; {len(todo)} to go on {workers}")
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker) as pool:
+    with ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(),)) as pool:
         futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
         try:
             for k, future in enumerate(as_completed(futures), 1):
