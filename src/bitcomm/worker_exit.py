@@ -3,8 +3,9 @@
 A study's runs (`bitcomm compare`) train in a pool of spawned processes. Ctrl-C reaches the whole terminal's
 process group, and the parent stops them; but a parent killed alone (`kill PID`, `pkill -f "bitcomm compare"`,
 the OOM killer) used to leave its workers training on, unseen, sharing the cores with whatever ran next (an
-a3c run's workers watch their parent themselves, `bitcomm.learn.a3c`). On Linux a worker asks the kernel for SIGTERM when its parent ends (`prctl(PR_SET_PDEATHSIG)`); its
-checkpoints are written atomically, so the run resumes from the last one. Elsewhere this is a no-op.
+a3c run's workers watch their parent themselves, `bitcomm.learn.a3c`). On Linux a worker asks the kernel for
+SIGTERM when its parent ends (`prctl(PR_SET_PDEATHSIG)`); its checkpoints are written atomically, so the run
+resumes from the last one. Elsewhere this is a no-op.
 """
 
 from __future__ import annotations
