@@ -77,9 +77,10 @@ def main() -> None:
     for name, t in ops:
         shares[group_of(name)] += t / total
     agent_steps = int(ro.length.sum()) * cfg.task.env.n_agents
+    task_name = f"{a.size}x{a.size}, K={a.bits}, {cfg.model.messages}"
     per_update = total / 1e6 / a.updates
     print(
-        f"{a.recipe} ({a.size}x{a.size}, K={a.bits}, {cfg.model.messages}): {agent_steps:,} agent-steps per batch, "
+        f"{a.recipe} ({task_name}): {agent_steps:,} agent-steps per batch, "
         f"{cfg.epochs} epochs x {cfg.minibatches} minibatches, "
         f"{per_update:.3f} s of CPU per update ({a.threads} thread(s), profiler overhead included)"
     )
@@ -91,7 +92,7 @@ def main() -> None:
     summary = {
         "benchmark": "update_profile",
         "recipe": a.recipe,
-        "task": f"{a.size}x{a.size}, K={a.bits}, {cfg.model.messages}",
+        "task": task_name,
         "threads": a.threads,
         "agent_steps_per_batch": agent_steps,
         "cpu_s_per_update": round(per_update, 4),

@@ -223,14 +223,15 @@ class Learner:
         valid = ro.valid[:, cols]
         it, ib = valid.nonzero(as_tuple=True)
         received = ro.received[it, cols[ib]]  # (M, n, slots, K)
+        per_agent = received.flatten(0, 1)  # (M * n, slots, K)
         # the dense encoding only for a message map; the trunk reads the bits by the head's own product
-        encoded = policy.encode_received(received.flatten(0, 1)) if policy.message_map is not None else None
+        encoded = policy.encode_received(per_agent) if policy.message_map is not None else None
         with update_precision(self.cfg.update_dtype):  # what the terms compute from these passes is float32
             if features is not None and features.policy is not None:
                 feats = features.policy[it, cols[ib]].flatten(0, 1)
             else:
                 feats = policy.observation_features(ro.planes[it, cols[ib]].flatten(0, 1), encoded)
-            h1, h2 = policy.trunk(feats, policy.read_received(received.flatten(0, 1)))
+            h1, h2 = policy.trunk(feats, policy.read_received(per_agent))
             msg_logits, move_logits = policy.message_logits(h2), policy.move_logits(h2)
         passes = (feats, h1, msg_logits, move_logits)
         return _Forward(cols, it, ib, received, encoded, *(x.float() for x in passes))
