@@ -95,8 +95,8 @@ class OneHotHead:
 
     def linear(self, received: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
         """`F.linear(encode(received).flatten(1), weight, bias)` for `(N, slots, K)` received bits, as the sum of
-        the weight's columns of the messages that arrived: the product with a 2^K-wide one-hot and its gradient
-        cost 15x more (docs/tuning.md, session 16)."""
+        the weight's columns of the messages that arrived: at K = 10 the product with a 2^K-wide one-hot and its
+        gradient cost about 15x more (docs/tuning.md, session 16)."""
         slot = torch.arange(received.shape[-2], device=received.device) * self.in_features
         out = F.embedding(bits_to_index(received) + slot, weight.T).sum(-2)
         return out if bias is None else out + bias
