@@ -18,7 +18,16 @@ import pytest
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
-from bitcomm.studies.compare import CHOICES, CompareConfig, Curve, execute, first_below, plan
+from bitcomm.studies.compare import (
+    CHOICES,
+    CompareConfig,
+    Curve,
+    budget_marks,
+    execute,
+    first_below,
+    plan,
+    rolling_at_episodes,
+)
 
 TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
         "--eval-episodes", "50"]  # fmt: skip
@@ -49,6 +58,19 @@ def intervals(node: Any) -> list[dict[str, Any]]:
     if isinstance(node, list):
         return [i for v in node for i in intervals(v)]
     return []
+
+
+def markdown_tables(text: str) -> list[list[list[str]]]:
+    """Every table of a Markdown text: its rows (header first, the separator left out) as lists of cells."""
+    tables: list[list[list[str]]] = []
+    previous = ""
+    for line in text.splitlines():
+        if line.startswith("|") and not line.startswith("|---"):
+            if not previous.startswith("|"):
+                tables.append([])
+            tables[-1].append([c.strip() for c in line.strip("|").split(" | ")])
+        previous = line
+    return tables
 
 
 def curves(out: Path) -> list[dict[str, str]]:
@@ -92,12 +114,27 @@ def test_study_writes_every_file_well_formed(study: tuple[Path, str]) -> None:
     assert len(found) >= len(CHOICES) * 7
     assert all(i["ci95"][0] <= i["mean"] <= i["ci95"][1] for i in found)
 
-    table = (out / "table.md").read_text().splitlines()
-    header = next(line for line in table if line.startswith("| configuration"))
-    body = [line for line in table if line.startswith("| ") and line != header]
-    assert [line.split(" | ")[0][2:] for line in body] == ["oracle", *CHOICES]
-    assert all(line.count(" | ") == header.count(" | ") for line in body)
-    assert header in stdout
+    text = (out / "table.md").read_text()
+    main_table, per_seed, along = markdown_tables(text)
+    assert [row[0] for row in main_table] == ["configuration", "oracle", *CHOICES]
+    assert all(len(row) == len(main_table[0]) for row in main_table)
+    assert "| " + " | ".join(main_table[0]) + " |" in stdout  # the main table is printed
+
+    by_name = {c["name"]: c for c in summary["configurations"]}
+    assert per_seed[0] == ["configuration", "seed 0", "seed 1"]
+    for name, *cells in per_seed[1:]:
+        for run, text_cell in zip(by_name[name]["runs"], cells, strict=True):
+            sampled, greedy = run["sampled"]["mean_episode_length"], run["greedy"]["mean_episode_length"]
+            assert text_cell.startswith(f"{sampled:.2f} ({greedy:.1f}); 2x: ") and "; 1.15x: " in text_cell
+
+    assert summary["study"]["episode_marks"] == [8, 16, 32, 48, 64]
+    assert along[0] == ["configuration", *(f"{e} episodes" for e in (8, 16, 32, 48, 64))]
+    for name, *cells in along[1:]:
+        at_end = by_name[name]["rolling_at_episodes"][-1]
+        assert at_end["mean"] == pytest.approx(
+            np.mean([r["final_rolling_episode_length"] for r in by_name[name]["runs"]])
+        )
+        assert len(cells) == 5 and cells[-1].startswith(f"{at_end['mean']:.2f} ± ")
 
 
 def test_second_call_trains_nothing_and_rewrites_the_same_files(study: tuple[Path, str]) -> None:
@@ -161,6 +198,16 @@ def test_time_to_a_level_is_the_first_batch_below_it() -> None:
     curve = Curve(steps, np.array([1.0, 2.5, 4.0]), np.array([20.0, 9.0, 5.0]), steps, -steps)
     assert first_below(curve, 10.0) == {"episodes": 32, "wall_s": 2.5}
     assert first_below(curve, 5.0) is None
+
+
+def test_the_tables_read_every_curve_at_fractions_of_the_budget_as_the_plot_draws_it() -> None:
+    assert budget_marks(200_000) == [25_000, 50_000, 100_000, 150_000, 200_000]
+    assert budget_marks(4) == [1, 2, 3, 4]  # an eighth of 4 episodes is read at the first
+    steps = np.array([16.0, 32.0, 48.0])
+    curve = Curve(steps, np.array([1.0, 2.5, 4.0]), np.array([20.0, 9.0, 5.0]), steps, -steps)
+    assert rolling_at_episodes(curve, 40, "length_rolling") == pytest.approx(7.0)  # between two batches
+    assert rolling_at_episodes(curve, 8, "length_rolling") == 20.0  # before the first batch: its value
+    assert rolling_at_episodes(curve, 64, "length_rolling") == 5.0
 
 
 @pytest.mark.parametrize(

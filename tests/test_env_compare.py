@@ -48,6 +48,10 @@ def test_study_writes_curves_table_and_plot(study: Path) -> None:
     assert max(int(r["episodes"]) for r in rows) == 2560
     table = (study / "table.md").read_text()
     assert "return, channel cut at evaluation" in table and "| improved-bitwise |" in table
+    run = json.loads((study / "summary.json").read_text())["configurations"][0]["runs"][0]
+    per_seed = " / ".join(f"{run[play]['mean_team_return']:.3f}" for play in ("sampled", "greedy", "cut"))
+    assert "## Per seed" in table and f"| improved-bitwise | {per_seed} |" in table
+    assert "## Rolling team return along the budget" in table
     assert (study / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

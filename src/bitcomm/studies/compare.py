@@ -7,7 +7,8 @@ over several seeds at one budget, measured on one episode set and set against th
                                          interval over seeds per configuration, the oracle as a line
     <out>/table.md, summary.json         per configuration: final evaluation (sampled and greedy), the
                                          episodes and seconds until the rolling mean falls below 2x and
-                                         1.15x the oracle, wall time; each a mean and 95% interval over seeds
+                                         1.15x the oracle, wall time; each a mean and 95% interval over seeds;
+                                         then each seed's figures, and the rolling mean along the budget
 
 A configuration is a technique with one value of each varied option (`vary={"flip_prob": (0, 0.05)}`),
 so a noise study is the same study. The learned baseline `no-comm` is `improved-bitwise` trained and
@@ -66,6 +67,8 @@ GRID_POINTS = 200
 """Points of the common episode grid the seeds' curves are interpolated onto for the plot."""
 CSV_POINTS = 1000
 """At most this many rows of each run's curve go to curves.csv (evenly spaced, always the last)."""
+BUDGET_FRACTIONS = (0.125, 0.25, 0.5, 0.75, 1.0)
+"""Where along the budget the tables read every run's rolling curve (equal episodes, before the end)."""
 EVALUATION = "evaluation.json"
 RESUMABLE = ("episodes", "checkpoint_seconds", "keep_checkpoints", "env_workers")
 """Config fields a finished or partial run may differ in from the study and still count as its run."""
@@ -474,6 +477,17 @@ def rolling_at(curve: Any, wall_s: float, field: str = "length_rolling") -> floa
     return float(getattr(curve, field)[rows[-1] if rows.size else 0])
 
 
+def budget_marks(episodes: int) -> list[int]:
+    """The episodes at which a study's tables read every run's curve: `BUDGET_FRACTIONS` of the budget."""
+    return sorted({max(1, round(f * episodes)) for f in BUDGET_FRACTIONS})
+
+
+def rolling_at_episodes(curve: Any, episodes: int, field: str) -> float:
+    """The curve's `field` at `episodes`, interpolated between the logged batches as the plotted curves are
+    (the first batch's value before it, the last one's after it)."""
+    return float(np.interp(episodes, curve.episodes, getattr(curve, field)))
+
+
 def interval(values: list[float]) -> dict[str, Any] | None:
     """Mean and 95% interval over seeds (None for no values)."""
     if not values:
@@ -505,9 +519,11 @@ def evaluation_of(run: Run, cfg: CompareConfig | EnvCompareConfig) -> dict[str, 
     return evaluation
 
 
-def run_record(run: Run, curve: Any, out: Path, equal_wall: float, field: str, measure: str) -> dict[str, Any]:
+def run_record(
+    run: Run, curve: Any, out: Path, equal_wall: float, marks: list[int], field: str, measure: str
+) -> dict[str, Any]:
     """What every study's summary gives of a run: where it is, what it played, and its curve's rolling `field`
-    (named `measure`) at its end and at the study's equal wall-clock time."""
+    (named `measure`) at its end, at the study's equal wall-clock time and at the episodes `marks`."""
     return {
         "seed": run.seed,
         "folder": str(run.folder.relative_to(out)),
@@ -515,7 +531,13 @@ def run_record(run: Run, curve: Any, out: Path, equal_wall: float, field: str, m
         "wall_s": float(curve.wall_s[-1]),
         f"final_rolling_{measure}": float(getattr(curve, field)[-1]),
         "rolling_at_equal_wall": rolling_at(curve, equal_wall, field),
+        "rolling_at_episodes": [rolling_at_episodes(curve, e, field) for e in marks],
     }
+
+
+def along_budget(records: list[dict[str, Any]], marks: list[int]) -> list[dict[str, Any] | None]:
+    """A configuration's runs' rolling curves at each of the episodes `marks`, as intervals over seeds."""
+    return [interval([r["rolling_at_episodes"][i] for r in records]) for i in range(len(marks))]
 
 
 def technique_entry(conf: Configuration) -> dict[str, Any]:
@@ -538,6 +560,8 @@ def summarize(
     Besides the end of the budget (equal episodes), every run is also read at the training time of the
     quickest run (equal wall-clock): a technique whose updates cost more has then played fewer episodes."""
     equal_wall = min(float(curves[r.folder].wall_s[-1]) for r in runs)
+    first = runs[0].train
+    marks = budget_marks(first.episodes)
     configurations = []
     for conf in dict.fromkeys(r.configuration for r in runs):
         result = oracle[conf.task_variant]
@@ -545,7 +569,7 @@ def summarize(
         records = []
         for run in (r for r in runs if r.configuration == conf):
             curve, evaluation = curves[run.folder], evaluation_of(run, cfg)
-            record = run_record(run, curve, cfg.out, equal_wall, "length_rolling", "episode_length")
+            record = run_record(run, curve, cfg.out, equal_wall, marks, "length_rolling", "episode_length")
             record["sampled"], record["greedy"] = evaluation["sampled"], evaluation["greedy"]
             record["reached"] = {
                 threshold_key(m): None if level is None else first_below(curve, m * level) for m in THRESHOLDS
@@ -557,6 +581,7 @@ def summarize(
             "oracle_mean_episode_length": level,
             "wall_s": interval([r["wall_s"] for r in records]),
             "rolling_at_equal_wall": interval([r["rolling_at_equal_wall"] for r in records]),
+            "rolling_at_episodes": along_budget(records, marks),
         }
         for play in ("sampled", "greedy"):
             entry[play] = {
@@ -574,7 +599,6 @@ def summarize(
             }
         entry["runs"] = records
         configurations.append(entry)
-    first = runs[0].train
     return {
         "study": {
             "recipe": cfg.recipe,
@@ -588,6 +612,7 @@ def summarize(
             "eval_seed": cfg.eval_seed,
             "thresholds": [threshold_key(m) for m in THRESHOLDS],
             "equal_wall_s": equal_wall,
+            "episode_marks": marks,
         },
         "oracle": {variant: None if r is None else r.to_dict() for variant, r in oracle.items()},
         "configurations": configurations,
@@ -674,6 +699,52 @@ def plot_curves(
     save_figure(fig, path)
 
 
+def markdown_row(cells: list[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def per_seed_markdown(
+    summary: dict[str, Any], describe: Callable[[dict[str, Any], dict[str, Any]], str], what: str
+) -> list[str]:
+    """table.md's section with one column per seed: `describe(configuration, run record)` in each cell."""
+    seeds = sorted({r["seed"] for c in summary["configurations"] for r in c["runs"]})
+    header = ["configuration", *(f"seed {s}" for s in seeds)]
+    lines = ["", "## Per seed", "", what, "", markdown_row(header), "|" + "---|" * len(header)]
+    for c in summary["configurations"]:
+        by_seed = {r["seed"]: describe(c, r) for r in c["runs"]}
+        lines.append(markdown_row([c["name"], *(by_seed.get(s, "—") for s in seeds)]))
+    return lines
+
+
+def along_budget_markdown(summary: dict[str, Any], measure: str, fmt: str) -> list[str]:
+    """table.md's section reading every configuration's rolling `measure` at the study's episode marks."""
+    marks = summary["study"]["episode_marks"]
+    header = ["configuration", *(f"{e:,} episodes" for e in marks)]
+    lines = [
+        "",
+        f"## Rolling {measure} along the budget",
+        "",
+        f"Each run's rolling {measure} of its training episodes at these episodes (interpolated between logged "
+        "batches, as the curves are drawn); mean ± the 95% half-interval over seeds.",
+        "",
+        markdown_row(header),
+        "|" + "---|" * len(header),
+    ]
+    for c in summary["configurations"]:
+        lines.append(markdown_row([c["name"], *(cell(v, fmt) for v in c["rolling_at_episodes"])]))
+    return lines
+
+
+def _seed_cell(configuration: dict[str, Any], run: dict[str, Any]) -> str:
+    """A grid run's final lengths, sampled (greedy), and when its rolling length first fell below each level."""
+    text = f"{run['sampled']['mean_episode_length']:.2f} ({run['greedy']['mean_episode_length']:.1f})"
+    if configuration["oracle_mean_episode_length"] is None:
+        return text
+    for key, hit in run["reached"].items():
+        text += f"; {key}: " + ("—" if hit is None else f"{hit['episodes']:,} ep, {hit['wall_s']:,.0f} s")
+    return text
+
+
 def cell(value: dict[str, Any] | None, fmt: str) -> str:
     if value is None:
         return "—"
@@ -725,6 +796,13 @@ def table_markdown(summary: dict[str, Any]) -> str:
             cells += [_reached_cell(r, what, fmt) for r in reached]
         cells += [cell(c["wall_s"], ",.1f"), cell(c["rolling_at_equal_wall"], ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
+    lines += per_seed_markdown(
+        summary,
+        _seed_cell,
+        "Length of each run's final policy, sampled (greedy), on the evaluation episodes; then the training "
+        "episodes and seconds at which its rolling length first fell below each level (—: never).",
+    )
+    lines += along_budget_markdown(summary, "length", ".2f")
     return "\n".join(lines) + "\n"
 
 

@@ -34,12 +34,16 @@ from bitcomm.studies.compare import (
     VERBS,
     Configuration,
     Run,
+    along_budget,
+    along_budget_markdown,
+    budget_marks,
     cell,
     check_study_fields,
     evaluation_of,
     execute_all,
     interval,
     on_grid,
+    per_seed_markdown,
     plural,
     read_columns,
     read_evaluation,
@@ -123,18 +127,20 @@ def summarize(cfg: EnvCompareConfig, runs: list[Run], curves: dict[Path, EnvCurv
     """summary.json: the study and, per technique, its runs and their intervals (equal episodes: the end of
     the budget; equal wall-clock: every run read at the quickest run's training time)."""
     equal_wall = min(float(curves[r.folder].wall_s[-1]) for r in runs)
+    marks = budget_marks(cfg.base.episodes)
     configurations = []
     for conf in dict.fromkeys(r.configuration for r in runs):
         records = []
         for run in (r for r in runs if r.configuration == conf):
             curve, evaluation = curves[run.folder], evaluation_of(run, cfg)
-            record = run_record(run, curve, cfg.out, equal_wall, "return_rolling", "team_return")
+            record = run_record(run, curve, cfg.out, equal_wall, marks, "return_rolling", "team_return")
             records.append({**record, **{play: evaluation[play] for play in PLAYS}})
         entry: dict[str, Any] = {
             **technique_entry(conf),
             "wall_s": interval([r["wall_s"] for r in records]),
             "final_rolling_team_return": interval([r["final_rolling_team_return"] for r in records]),
             "rolling_at_equal_wall": interval([r["rolling_at_equal_wall"] for r in records]),
+            "rolling_at_episodes": along_budget(records, marks),
         }
         for play in PLAYS:
             entry[play] = {key: interval([r[play][key] for r in records]) for key in MEASURES}
@@ -157,6 +163,7 @@ def summarize(cfg: EnvCompareConfig, runs: list[Run], curves: dict[Path, EnvCurv
             "eval_episodes": cfg.eval_episodes,
             "eval_seed": cfg.eval_seed,
             "equal_wall_s": equal_wall,
+            "episode_marks": marks,
         },
         "configurations": configurations,
     }
@@ -189,6 +196,12 @@ def table_markdown(summary: dict[str, Any]) -> str:
         cells += [cell(c["sampled"]["mean_episode_length"], ".2f"), cell(c["final_rolling_team_return"], ".3f")]
         cells += [cell(c["rolling_at_equal_wall"], ".3f"), cell(c["wall_s"], ",.1f")]
         lines.append("| " + " | ".join(cells) + " |")
+    lines += per_seed_markdown(
+        summary,
+        lambda _, run: " / ".join(f"{run[play]['mean_team_return']:.3f}" for play in PLAYS),
+        "Team return of each run's final policy on the evaluation episodes: sampled / greedy / channel cut.",
+    )
+    lines += along_budget_markdown(summary, "team return", ".3f")
     return "\n".join(lines) + "\n"
 
 
