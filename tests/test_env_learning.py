@@ -207,10 +207,14 @@ def _grads(learner: EnvLearner, ro: EnvRollout, adv: Advantages) -> dict[str, to
     }
 
 
-@pytest.mark.parametrize(("clip", "box"), [(0.0, False), (0.2, False), (0.2, True)])
-def test_pure_zero_advantages_and_entropy_give_zero_gradient(clip: float, box: bool) -> None:
+@pytest.mark.parametrize(
+    ("clip", "box", "messages"), [(0.0, False, "bitwise"), (0.2, False, "bitwise"), (0.2, True, "bitwise"),
+                                  (0.2, False, "onehot")]
+)  # fmt: skip
+def test_pure_zero_advantages_and_entropy_give_zero_gradient(clip: float, box: bool, messages: str) -> None:
     """SPEC 7: every gradient that reaches the action and message heads is policy gradient + entropy."""
-    learner, ro = _batch(config(entropy_action=0.0, entropy_message=0.0, clip=clip, env_kwargs={"box": box}))
+    cfg = config(entropy_action=0.0, entropy_message=0.0, clip=clip, env_kwargs={"box": box}, messages=messages)
+    learner, ro = _batch(cfg)
     zero = Advantages(torch.zeros_like(ro.logp_action), torch.zeros_like(ro.logp_action), torch.zeros_like(ro.rewards))
     assert all((g == 0).all() for g in _grads(learner, ro, zero).values())
     grads = _grads(learner, ro, learner.advantages(ro))  # the check can fail: real advantages move both heads

@@ -130,7 +130,8 @@ class EnvLearner:
         dist = policy.actions
         mask_a, mask_m = self._masks(ro.alive[it, bc])
         lp_a = torch.where(mask_a, dist.log_prob(act_out, ro.actions[it, bc]), 0.0)
-        lp_m = torch.where(mask_m, policy.head.log_prob(msg_logits, ro.bits[it, bc]), 0.0)
+        msg_log_prob, msg_entropy = policy.head.log_prob_and_entropy(msg_logits, ro.bits[it, bc])  # one pass
+        lp_m = torch.where(mask_m, msg_log_prob, 0.0)
 
         def full(x: torch.Tensor) -> torch.Tensor:  # (M, n) -> (T, Bc, n), zero off the valid steps
             out = torch.zeros(*valid.shape, self.n, dtype=x.dtype)
@@ -147,7 +148,7 @@ class EnvLearner:
             pg = policy_gradient_loss(logp_a, logp_m, sub, valid)
         # entropy bonuses, -n w mean H over the agent-steps where each head acts (as objectives.Entropy)
         h_a = _masked_mean(dist.entropy(act_out), mask_a)
-        h_m = _masked_mean(policy.head.entropy(msg_logits), mask_m)
+        h_m = _masked_mean(msg_entropy, mask_m)
         loss = pg - self.n * (cfg.entropy_action * h_a + cfg.entropy_message * h_m)
         stats = {"losses/policy": pg.item(), "charts/entropy_action": h_a.item(), "charts/entropy_message": h_m.item()}
         return loss, stats
