@@ -9,10 +9,12 @@ import typing
 
 import pytest
 
-from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
+from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides, recipe_values
+from bitcomm.commands.train import ENV_CONFIG, GRID_CONFIG
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import RECIPES, TrainConfig, make_train_config
-from bitcomm.learn.options import STRUCTURAL, learning_options
+from bitcomm.learn.env_config import EnvTrainConfig
+from bitcomm.learn.options import STRUCTURAL, field_default, learning_options
 from bitcomm.policies.networks import ModelConfig
 
 
@@ -66,3 +68,25 @@ def test_a_config_built_in_python_names_a_wrongly_typed_or_out_of_range_value() 
         with pytest.raises(ConfigError, match=f"{name.replace('_', '-')}={value!r}"):
             make_train_config("reinforced", **{name: value})
     assert make_train_config("reinforced", epochs=2, lr=1, gamma=1).lr == 1  # an int is a number
+
+
+def test_the_help_gives_each_recipes_default_as_the_config_has_it() -> None:
+    defaults = {f.name: f.default for cls in (TrainConfig, ModelConfig) for f in dataclasses.fields(cls)}
+    for name, option in learning_options().items():
+        assert option.default == defaults[name], name  # read from the source without importing it
+        for recipe, value in recipe_values(option).items():
+            cfg = make_train_config(recipe)
+            assert value == getattr(cfg.model if hasattr(cfg.model, name) else cfg, name), (recipe, name)
+    helps = {a.dest: a.help for a in parse_actions()}
+    assert helps["lr"] == "lr (default: 0.003 under reinforced, 0.001 under supervised and paper)"
+    assert helps["critic_lr"] == "critic lr (default: 0.001)"
+    assert helps["anneal_lr"].endswith("(default: on under reinforced, off under supervised and paper)")
+    assert "marginals" in helps["encoder"]  # the first sentence does not end at "Fig. 2"
+    budgets = [field_default(module, cls, "episodes") for module, cls in (GRID_CONFIG, ENV_CONFIG)]
+    assert budgets == [defaults["episodes"], EnvTrainConfig(env="x:y").episodes]
+
+
+def parse_actions() -> list[argparse.Action]:
+    parser = argparse.ArgumentParser()
+    add_learning_flags(parser)
+    return parser._actions

@@ -19,7 +19,12 @@ from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.env_flags import add_env_flags
 from bitcomm.commands.flags import MAX_EVAL_EPISODES, MAX_JOBS, MAX_TRAIN_EPISODES, SEED, check_train, integer, out_dir
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
+from bitcomm.learn.options import field_default
 from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
+
+GRID_CONFIG = ("bitcomm.learn.config", "TrainConfig")
+ENV_CONFIG = ("bitcomm.learn.env_config", "EnvTrainConfig")
+"""Where the two budgets' defaults are read from (without importing torch)."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -35,7 +40,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--episodes",
         type=integer(1, MAX_TRAIN_EPISODES, "beyond 10^9 a run takes years"),
         default=None,
-        help="budget of environment episodes (default: the recipe's value)",
+        help=f"budget of environment episodes (default {field_default(*GRID_CONFIG, 'episodes'):,}; with --env "
+        f"{field_default(*ENV_CONFIG, 'episodes'):,})",
     )
     p.add_argument("--seed", type=SEED, default=0, help="default %(default)s")
     p.add_argument(

@@ -40,6 +40,8 @@ class Option:
     kind: type
     """int, float, bool or str."""
     help: str | None
+    default: Any = None
+    """The dataclass field's default: the value where a recipe sets none."""
 
     @property
     def flag(self) -> str:
@@ -70,16 +72,37 @@ def _plain_type(annotation: ast.expr) -> type | None:
 
 def _first_sentence(doc: str) -> str:
     text = " ".join(doc.replace("`", "").split())
-    sentence = re.split(r"(?<=\.)\s", text, maxsplit=1)[0]
+    sentence = re.split(r"(?<!Fig\.)(?<!e\.g\.)(?<!i\.e\.)(?<=\.)\s", text, maxsplit=1)[0]  # not at "Fig. 2"
     return sentence.replace("%", "%%")  # argparse formats help with %
 
 
-def _class_options(module: str, cls: str) -> list[Option]:
+def _class_body(module: str, cls: str) -> list[ast.stmt]:
     spec = importlib.util.find_spec(module)
     if spec is None or spec.origin is None:
         raise ImportError(f"cannot find {module}")
     tree = ast.parse(Path(spec.origin).read_text())
-    body = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == cls).body
+    return next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == cls).body
+
+
+def _literal(node: ast.expr | None) -> Any:
+    """A field's default as written in the source, where it is a literal (None otherwise)."""
+    try:
+        return None if node is None else ast.literal_eval(node)
+    except ValueError:
+        return None
+
+
+def field_default(module: str, cls: str, name: str) -> Any:
+    """The default of the dataclass field `cls.name`, read from `module`'s source (without importing it)."""
+    body = _class_body(module, cls)
+    node = next(
+        n for n in body if isinstance(n, ast.AnnAssign) and isinstance(n.target, ast.Name) and n.target.id == name
+    )
+    return _literal(node.value)
+
+
+def _class_options(module: str, cls: str) -> list[Option]:
+    body = _class_body(module, cls)
     options = []
     for node, after in zip(body, [*body[1:], None], strict=True):
         if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
@@ -90,7 +113,7 @@ def _class_options(module: str, cls: str) -> list[Option]:
         doc = None
         if isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str):
             doc = _first_sentence(after.value.value)
-        options.append(Option(node.target.id, kind, doc))
+        options.append(Option(node.target.id, kind, doc, _literal(node.value)))
     return options
 
 
