@@ -703,13 +703,18 @@ def markdown_row(cells: list[str]) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
+def markdown_header(header: list[str]) -> list[str]:
+    """A Markdown table's first two lines: the column names and the separator."""
+    return [markdown_row(header), "|" + "---|" * len(header)]
+
+
 def per_seed_markdown(
     summary: dict[str, Any], describe: Callable[[dict[str, Any], dict[str, Any]], str], what: str
 ) -> list[str]:
     """table.md's section with one column per seed: `describe(configuration, run record)` in each cell."""
     seeds = sorted({r["seed"] for c in summary["configurations"] for r in c["runs"]})
     header = ["configuration", *(f"seed {s}" for s in seeds)]
-    lines = ["", "## Per seed", "", what, "", markdown_row(header), "|" + "---|" * len(header)]
+    lines = ["", "## Per seed", "", what, "", *markdown_header(header)]
     for c in summary["configurations"]:
         by_seed = {r["seed"]: describe(c, r) for r in c["runs"]}
         lines.append(markdown_row([c["name"], *(by_seed.get(s, "—") for s in seeds)]))
@@ -727,8 +732,7 @@ def along_budget_markdown(summary: dict[str, Any], measure: str, fmt: str) -> li
         f"Each run's rolling {measure} of its training episodes at these episodes (interpolated between logged "
         "batches, as the curves are drawn); mean ± the 95% half-interval over seeds.",
         "",
-        markdown_row(header),
-        "|" + "---|" * len(header),
+        *markdown_header(header),
     ]
     for c in summary["configurations"]:
         lines.append(markdown_row([c["name"], *(cell(v, fmt) for v in c["rolling_at_episodes"])]))
@@ -780,13 +784,12 @@ def table_markdown(summary: dict[str, Any]) -> str:
         "level, averaged over those; seconds are training wall time, with runs sharing the machine's cores. The "
         "last column reads every run's rolling mean at the quickest run's training time (equal wall-clock).",
         "",
-        "| " + " | ".join(header) + " |",
-        "|" + "---|" * len(header),
+        *markdown_header(header),
     ]
     for variant, result in summary["oracle"].items():
         if result is not None:
             cells = [f"{result['mean_episode_length']:.2f}", f"{result['mean_team_return']:.2f}"] * 2
-            lines.append("| " + " | ".join([f"oracle {variant}".strip(), *cells, *["—"] * (2 * len(keys) + 2)]) + " |")
+            lines.append(markdown_row([f"oracle {variant}".strip(), *cells, *["—"] * (2 * len(keys) + 2)]))
     for c in summary["configurations"]:
         reached = [c["reached"][k] if c["reached"] is not None else None for k in keys]
         cells = [c["name"]]
@@ -795,7 +798,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
         for what, fmt in (("episodes", ",.0f"), ("wall_s", ",.1f")):
             cells += [_reached_cell(r, what, fmt) for r in reached]
         cells += [cell(c["wall_s"], ",.1f"), cell(c["rolling_at_equal_wall"], ".2f")]
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(markdown_row(cells))
     lines += per_seed_markdown(
         summary,
         _seed_cell,

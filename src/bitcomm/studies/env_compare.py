@@ -42,6 +42,8 @@ from bitcomm.studies.compare import (
     evaluation_of,
     execute_all,
     interval,
+    markdown_header,
+    markdown_row,
     on_grid,
     per_seed_markdown,
     plural,
@@ -188,14 +190,13 @@ def table_markdown(summary: dict[str, Any]) -> str:
         "every run's training curve at its end (equal episodes) and at the quickest run's training time (equal "
         "wall-clock).",
         "",
-        "| " + " | ".join(header) + " |",
-        "|" + "---|" * len(header),
+        *markdown_header(header),
     ]
     for c in summary["configurations"]:
         cells = [c["name"], *(cell(c[play]["mean_team_return"], ".3f") for play in PLAYS)]
         cells += [cell(c["sampled"]["mean_episode_length"], ".2f"), cell(c["final_rolling_team_return"], ".3f")]
         cells += [cell(c["rolling_at_equal_wall"], ".3f"), cell(c["wall_s"], ",.1f")]
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(markdown_row(cells))
     lines += per_seed_markdown(
         summary,
         lambda _, run: " / ".join(f"{run[play]['mean_team_return']:.3f}" for play in PLAYS),
