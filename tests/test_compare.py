@@ -1,5 +1,6 @@
 """`bitcomm compare` on a tiny grid: every file there and well formed, a second call trains nothing and writes
-the same files, a partial run is resumed, `--vary` makes the product of configurations, bad input is one line."""
+the same files, an evaluation gains a play it lacks, `--report` trains nothing and reports the finished runs, a
+partial run is resumed, `--vary` makes the product of configurations, bad input is one line."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import csv
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -102,8 +104,10 @@ def test_study_writes_every_file_well_formed(study: tuple[Path, str]) -> None:
     for c in summary["configurations"]:
         assert c["communication"] == (c["technique"] != "no-comm") and c["oracle_mean_episode_length"] == oracle
         assert [r["seed"] for r in c["runs"]] == [0, 1]
+        assert c["seeds"] == 2
         for r in c["runs"]:
             assert r["episodes"] == 64 and r["sampled"]["episodes"] == r["greedy"]["episodes"] == 50
+            assert r["cut"]["episodes"] == 50  # the same policy with every message dropped
             assert set(r["reached"]) == {"2x", "1.15x"}
             config = json.loads((out / r["folder"] / "config.json").read_text())
             assert config["seed"] == r["seed"] and config["task"]["env"]["size"] == 3
@@ -118,14 +122,19 @@ def test_study_writes_every_file_well_formed(study: tuple[Path, str]) -> None:
     main_table, per_seed, along = markdown_tables(text)
     assert [row[0] for row in main_table] == ["configuration", "oracle", *CHOICES]
     assert all(len(row) == len(main_table[0]) for row in main_table)
+    assert main_table[0][1] == "seeds" and {row[1] for row in main_table[2:]} == {"2"}
+    cut_column = main_table[0].index("length, channel cut at evaluation")
+    for row, c in zip(main_table[2:], summary["configurations"], strict=True):
+        assert row[cut_column].startswith(f"{c['cut']['mean_episode_length']['mean']:.2f} ± ")
+    assert text.startswith("# bitcomm compare: reinforced recipe, 2 seeds x 64 episodes\n")
     assert "| " + " | ".join(main_table[0]) + " |" in stdout  # the main table is printed
 
     by_name = {c["name"]: c for c in summary["configurations"]}
     assert per_seed[0] == ["configuration", "seed 0", "seed 1"]
     for name, *cells in per_seed[1:]:
         for run, text_cell in zip(by_name[name]["runs"], cells, strict=True):
-            sampled, greedy = run["sampled"]["mean_episode_length"], run["greedy"]["mean_episode_length"]
-            assert text_cell.startswith(f"{sampled:.2f} ({greedy:.1f}); 2x: ") and "; 1.15x: " in text_cell
+            sampled, greedy, cut = (run[play]["mean_episode_length"] for play in ("sampled", "greedy", "cut"))
+            assert text_cell.startswith(f"{sampled:.2f} ({greedy:.1f}; {cut:.1f}); 2x: ") and "; 1.15x: " in text_cell
 
     assert summary["study"]["episode_marks"] == [8, 16, 32, 48, 64]
     assert along[0] == ["configuration", *(f"{e} episodes" for e in (8, 16, 32, 48, 64))]
@@ -149,6 +158,52 @@ def test_second_call_trains_nothing_and_rewrites_the_same_files(study: tuple[Pat
     assert {name: (out / name).read_bytes() for name in OUTPUTS} == before
     assert {p: p.stat().st_mtime_ns for p in checkpoints} == checkpoints
     assert {p: p.stat().st_mtime_ns for p in evaluations} == evaluations
+
+
+def test_an_evaluation_gains_the_plays_it_lacks_and_keeps_the_others(study: tuple[Path, str], tmp_path: Path) -> None:
+    """An evaluation.json written before the channel-cut play existed: the next call measures that play alone."""
+    out = tmp_path / "study"
+    shutil.copytree(study[0], out)
+    path = out / "runs" / "improved-bitwise" / "seed0" / "evaluation.json"
+    record = json.loads(path.read_text())
+    del record["cut"]
+    record["sampled"]["mean_episode_length"] = 99.0  # a mark: kept, not measured again
+    path.write_text(json.dumps(record))
+    res = bitcomm("compare", *TINY, "--episodes", "64", "--seeds", "2", "--out", str(out))
+    assert "1 to go" in res.stdout and "improved-bitwise seed 0: evaluated" in res.stdout
+    again = json.loads(path.read_text())
+    assert again["sampled"]["mean_episode_length"] == 99.0 and again["cut"]["episodes"] == 50
+    assert {k: v for k, v in again.items() if k != "cut"} == record
+
+
+def test_report_trains_nothing_and_reports_the_finished_runs(study: tuple[Path, str], tmp_path: Path) -> None:
+    """A study whose no-comm has one finished seed of three, the others two: `--report` reports what is there."""
+    out = tmp_path / "study"
+    shutil.copytree(study[0], out)
+    shutil.rmtree(out / "runs" / "no-comm" / "seed1")
+    res = bitcomm("compare", *TINY, "--episodes", "64", "--seeds", "3", "--report", "--out", str(out), "--json")
+    assert "--report: 6 runs not finished, left out" in res.stderr and "trained" not in res.stderr
+    assert not (out / "runs" / "no-comm" / "seed1").exists() and not list(out.glob("runs/*/seed2"))
+    summary = json.loads(res.stdout)
+    assert summary["study"]["report"] and summary["study"]["seeds"] == 3
+    assert {c["name"]: c["seeds"] for c in summary["configurations"]} == {
+        **{t: 2 for t in CHOICES if t != "no-comm"},
+        "no-comm": 1,
+    }
+    full = strict_json(study[0] / "summary.json")["configurations"][0]  # standard-onehot, both seeds finished
+    assert all(summary["configurations"][0][k] == full[k] for k in ("sampled", "greedy", "cut", "reached", "wall_s"))
+    text = (out / "table.md").read_text()
+    assert text.startswith("# bitcomm compare: reinforced recipe, 1-2 of 3 seeds x 64 episodes (finished runs)\n")
+    assert "| no-comm | 1 |" in text
+
+
+def test_report_of_a_folder_without_finished_runs_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["compare", *TINY, "--episodes", "64", "--seeds", "2", "--report", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"invalid out={str(tmp_path)!r}" in err and "no finished run" in err
+    assert not list(tmp_path.iterdir())
 
 
 def test_vary_makes_the_product_of_configurations(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

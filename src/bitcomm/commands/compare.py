@@ -2,8 +2,9 @@
 
 Task flags and learning flags are those of `bitcomm train` and apply to every run; `--vary NAME=V1,V2`
 (repeatable) makes one configuration per technique and value. Running the same command again skips
-finished runs and resumes interrupted ones. With `--env PACKAGE.MODULE:FACTORY` the study runs on that
-PettingZoo env wrapped in bitcomm's channel (`bitcomm.studies.env_compare`), with `bitcomm train --env`'s flags.
+finished runs and resumes interrupted ones; with `--report` it trains nothing and reports the finished
+runs. With `--env PACKAGE.MODULE:FACTORY` the study runs on that PettingZoo env wrapped in bitcomm's
+channel (`bitcomm.studies.env_compare`), with `bitcomm train --env`'s flags.
 """
 
 from __future__ import annotations
@@ -104,6 +105,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="a learning or task option to vary, e.g. flip_prob=0,0.05,0.1 (repeatable; configurations are "
         "techniques x the product of the values; a varied option overrides its flag)",
     )
+    p.add_argument(
+        "--report",
+        action="store_true",
+        help="train nothing: write the tables from the runs in --out that have played their budget (evaluating "
+        "what their evaluation lacks), leaving out the others",
+    )
     p.add_argument("--json", action="store_true", help="print summary.json instead of the table")
     add_learning_flags(p)
     add_task_flags(p)
@@ -132,6 +139,7 @@ def _common(args: argparse.Namespace) -> dict[str, Any]:
         "jobs": args.jobs if args.jobs is not None else os.cpu_count() or 1,
         "eval_episodes": args.eval_episodes,
         "eval_seed": args.eval_seed,
+        "report": args.report,
     }
 
 

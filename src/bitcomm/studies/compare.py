@@ -5,10 +5,11 @@ over several seeds at one budget, measured on one episode set and set against th
     <out>/curves.csv                     every run's learning curve, read from its metrics.csv
     <out>/curves.png, curves.svg         rolling mean episode length against episodes: mean and 95%
                                          interval over seeds per configuration, the oracle as a line
-    <out>/table.md, summary.json         per configuration: final evaluation (sampled and greedy), the
-                                         episodes and seconds until the rolling mean falls below 2x and
-                                         1.15x the oracle, wall time; each a mean and 95% interval over seeds;
-                                         then each seed's figures, and the rolling mean along the budget
+    <out>/table.md, summary.json         per configuration: final evaluation (sampled, greedy, and sampled
+                                         with the channel cut), the episodes and seconds until the rolling
+                                         mean falls below 2x and 1.15x the oracle, wall time; each a mean
+                                         and 95% interval over seeds; then each seed's figures, and the
+                                         rolling mean along the budget
 
 A configuration is a technique with one value of each varied option (`vary={"flip_prob": (0, 0.05)}`),
 so a noise study is the same study. The learned baseline `no-comm` is `improved-bitwise` trained and
@@ -18,7 +19,14 @@ Runs go to a pool of spawned processes with one torch thread each. A run whose c
 the budget is skipped and a partial one resumed, so an interrupted study picks up where it stopped;
 the files at the top of `<out>` are derived from the run folders alone and rewritten on every call.
 The evaluation set has its own seed (`eval_seed`, never a training seed), so no run is measured on
-episodes it trained on, and every configuration faces the same episodes.
+episodes it trained on, and every configuration faces the same episodes. Each run is played three ways
+(`PLAYS`); the channel cut (every message dropped at evaluation) is the control that tells communication
+from acting alone: a policy that learned to talk loses its skill there, one that did not loses nothing.
+An evaluation written before a play was added gains that play alone on the next call.
+
+`report=True` (`bitcomm compare --report`) trains nothing: the tables are written from the runs that have
+played their budget (evaluating what their evaluation lacks), so a study still training, or one whose
+configurations have finished different numbers of seeds, can be reported at any time.
 """
 
 from __future__ import annotations
@@ -70,6 +78,9 @@ CSV_POINTS = 1000
 BUDGET_FRACTIONS = (0.125, 0.25, 0.5, 0.75, 1.0)
 """Where along the budget the tables read every run's rolling curve (equal episodes, before the end)."""
 EVALUATION = "evaluation.json"
+PLAYS = ("sampled", "greedy", "cut")
+"""How each run is measured: sampling, the most likely action and message, and sampling with the channel cut
+(every message dropped)."""
 RESUMABLE = ("episodes", "checkpoint_seconds", "keep_checkpoints", "env_workers")
 """Config fields a finished or partial run may differ in from the study and still count as its run."""
 STUDY_EPISODES = 60_000
@@ -162,6 +173,8 @@ class CompareConfig:
     """Learning options given explicitly; the others are the recipe's."""
     vary: dict[str, tuple[Any, ...]] = field(default_factory=dict)
     """Option name -> values; configurations are techniques x the product of these."""
+    report: bool = False
+    """Train nothing: report the runs that have played their budget."""
 
     def __post_init__(self) -> None:
         check_study_fields(self)
@@ -320,30 +333,43 @@ def read_evaluation(run: Run, episodes: int, seed: int) -> dict[str, Any] | None
     return record if same == (_latest(run.folder)["checkpoint"], episodes, seed) else None
 
 
-def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
-    """Sampled and greedy play of the latest checkpoint on its own task, written to evaluation.json; a run on a
-    wrapped env is also played with its channel cut (`cut`: every message dropped), the control that shows
-    whether what it learned is communication."""
+def missing_plays(run: Run, episodes: int, seed: int) -> tuple[str, ...]:
+    """The `PLAYS` the run's evaluation of its latest checkpoint on this episode set lacks (all without one)."""
+    record = read_evaluation(run, episodes, seed)
+    return PLAYS if record is None else tuple(play for play in PLAYS if play not in record)
+
+
+def _plays(run: Run, episodes: int, seed: int) -> dict[str, Callable[[], Any]]:
+    """Each of `PLAYS` of the run's latest checkpoint on its own task, as a measurement to make."""
     from bitcomm.learn.env_config import EnvTrainConfig
     from bitcomm.learn.env_eval import evaluate_env
     from bitcomm.policies.evaluation import evaluate_checkpoint
 
-    plays: dict[str, Callable[[], Any]] = {
-        "sampled": lambda: evaluate_checkpoint(run.folder, episodes, seed),
-        "greedy": lambda: evaluate_checkpoint(run.folder, episodes, seed, greedy=True),
-    }
     if isinstance(run.train, EnvTrainConfig):
-        plays = {
+        return {
             "sampled": lambda: evaluate_env(run.folder, episodes, seed),
             "greedy": lambda: evaluate_env(run.folder, episodes, seed, greedy=True),
             "cut": lambda: evaluate_env(run.folder, episodes, seed, drop_prob=1.0),
         }
-    record = {
+    task = run.train.task
+    cut = dataclasses.replace(task, channel=dataclasses.replace(task.channel, drop_prob=1.0))
+    return {
+        "sampled": lambda: evaluate_checkpoint(run.folder, episodes, seed),
+        "greedy": lambda: evaluate_checkpoint(run.folder, episodes, seed, greedy=True),
+        "cut": lambda: evaluate_checkpoint(run.folder, episodes, seed, task=cut),
+    }
+
+
+def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
+    """The plays its evaluation.json lacks of the latest checkpoint (every one of `PLAYS` for a new checkpoint),
+    added to it; returns the record."""
+    record = read_evaluation(run, episodes, seed) or {
         "checkpoint": _latest(run.folder)["checkpoint"],
         "episodes": episodes,
         "seed": seed,
-        **{play: measure().to_dict() for play, measure in plays.items()},
     }
+    measures = _plays(run, episodes, seed)
+    record.update({play: measures[play]().to_dict() for play in missing_plays(run, episodes, seed)})
     write_atomic(run.folder / EVALUATION, json.dumps(record, indent=2) + "\n")
     return record
 
@@ -376,7 +402,7 @@ def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
                 train_env(run.train, run.folder, resume=status == "resume", progress=False)
             else:
                 train(run.train, run.folder, resume=status == "resume", progress=False)
-        if read_evaluation(run, eval_episodes, eval_seed) is None:
+        if missing_plays(run, eval_episodes, eval_seed):
             evaluate_run(run, eval_episodes, eval_seed)
     return status
 
@@ -394,7 +420,7 @@ def execute_all(
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    todo = [r for r in runs if run_status(r) != "done" or read_evaluation(r, cfg.eval_episodes, cfg.eval_seed) is None]
+    todo = [r for r in runs if run_status(r) != "done" or missing_plays(r, cfg.eval_episodes, cfg.eval_seed)]
     per_run = max((_processes_of(r) for r in todo), default=1)
     processes = max(1, min(len(todo), cfg.jobs // per_run))
     if not todo:
@@ -425,11 +451,11 @@ def describe(run: Run, status: str, cfg: CompareConfig) -> str:
     curve = read_curve(run.folder)
     evaluation = read_evaluation(run, cfg.eval_episodes, cfg.eval_seed) or {}
     verb = VERBS[status]
-    sampled = evaluation.get("sampled", {}).get("mean_episode_length", math.nan)
+    sampled, cut = (evaluation.get(p, {}).get("mean_episode_length", math.nan) for p in ("sampled", "cut"))
     return (
         f"{run.configuration.name} seed {run.seed}: {verb} to {int(curve.episodes[-1])} episodes in "
         f"{curve.wall_s[-1]:.1f} s, rolling mean episode length {curve.length_rolling[-1]:.2f}, "
-        f"evaluated {sampled:.2f} (sampled)"
+        f"evaluated {sampled:.2f} (sampled), {cut:.2f} with the channel cut"
     )
 
 
@@ -514,9 +540,31 @@ def threshold_key(multiple: float) -> str:
 def evaluation_of(run: Run, cfg: CompareConfig | EnvCompareConfig) -> dict[str, Any]:
     """The run's evaluation on the study's episode set; one line if it has none."""
     evaluation = read_evaluation(run, cfg.eval_episodes, cfg.eval_seed)
-    if evaluation is None:
+    if evaluation is None or any(play not in evaluation for play in PLAYS):
         raise ConfigError(f"invalid run={str(run.folder)!r}: no evaluation of its latest checkpoint")
     return evaluation
+
+
+def study_runs(runs: list[Run], cfg: CompareConfig | EnvCompareConfig, log: Callable[[str], None]) -> list[Run]:
+    """The runs a call trains and reports: all of them, or with `cfg.report` those that have played their
+    budget (one error line when none has)."""
+    if not cfg.report:
+        return runs
+    finished = [r for r in runs if r.folder.is_dir() and run_status(r) == "done"]
+    if not finished:
+        raise bad_value("out", str(cfg.out), "holds no finished run of this study (--report trains nothing)")
+    if len(finished) < len(runs):
+        log(f"--report: {plural(len(runs) - len(finished), 'run', 'runs')} not finished, left out")
+    return finished
+
+
+def seeds_phrase(study: dict[str, Any], configurations: list[dict[str, Any]]) -> str:
+    """'5 seeds', or for a report whose configurations have finished different numbers of seeds, '2-5 seeds'."""
+    counts = sorted({len(c["runs"]) for c in configurations})
+    if len(counts) == 1 and counts[0] == study["seeds"]:
+        return plural(counts[0], "seed", "seeds")
+    low, high = counts[0], counts[-1]
+    return (f"{low}" if low == high else f"{low}-{high}") + f" of {plural(study['seeds'], 'seed', 'seeds')}"
 
 
 def run_record(
@@ -570,20 +618,21 @@ def summarize(
         for run in (r for r in runs if r.configuration == conf):
             curve, evaluation = curves[run.folder], evaluation_of(run, cfg)
             record = run_record(run, curve, cfg.out, equal_wall, marks, "length_rolling", "episode_length")
-            record["sampled"], record["greedy"] = evaluation["sampled"], evaluation["greedy"]
+            record.update({play: evaluation[play] for play in PLAYS})
             record["reached"] = {
                 threshold_key(m): None if level is None else first_below(curve, m * level) for m in THRESHOLDS
             }
             records.append(record)
         entry: dict[str, Any] = {
             **technique_entry(conf),
+            "seeds": len(records),
             "values": dict(conf.values),
             "oracle_mean_episode_length": level,
             "wall_s": interval([r["wall_s"] for r in records]),
             "rolling_at_equal_wall": interval([r["rolling_at_equal_wall"] for r in records]),
             "rolling_at_episodes": along_budget(records, marks),
         }
-        for play in ("sampled", "greedy"):
+        for play in PLAYS:
             entry[play] = {
                 key: interval([r[play][key] for r in records])
                 for key in ("mean_episode_length", "mean_team_return", "success_rate")
@@ -604,6 +653,7 @@ def summarize(
             "recipe": cfg.recipe,
             "episodes": first.episodes,
             "seeds": cfg.seeds,
+            "report": cfg.report,
             "techniques": list(cfg.techniques),
             "vary": {k: list(v) for k, v in cfg.vary.items()},
             "learning": dict(cfg.learning),
@@ -693,7 +743,7 @@ def plot_curves(
     env = cfg.task.env
     fig.suptitle(
         f"{cfg.recipe} recipe, {env.size}x{env.size} grid, K = {cfg.task.channel.bits}: mean and 95% interval over "
-        f"{cfg.seeds} seeds",
+        "seeds",
         fontsize=10,
     )
     save_figure(fig, path)
@@ -740,8 +790,10 @@ def along_budget_markdown(summary: dict[str, Any], measure: str, fmt: str) -> li
 
 
 def _seed_cell(configuration: dict[str, Any], run: dict[str, Any]) -> str:
-    """A grid run's final lengths, sampled (greedy), and when its rolling length first fell below each level."""
-    text = f"{run['sampled']['mean_episode_length']:.2f} ({run['greedy']['mean_episode_length']:.1f})"
+    """A grid run's final lengths, sampled (greedy; channel cut), and when its rolling length first fell below
+    each level."""
+    lengths = [run[play]["mean_episode_length"] for play in PLAYS]
+    text = "{:.2f} ({:.1f}; {:.1f})".format(*lengths)
     if configuration["oracle_mean_episode_length"] is None:
         return text
     for key, hit in run["reached"].items():
@@ -769,17 +821,19 @@ def table_markdown(summary: dict[str, Any]) -> str:
     study = summary["study"]
     env, channel = study["task"]["env"], study["task"]["channel"]
     keys = study["thresholds"]
-    header = ["configuration", "length (sampled)", "return (sampled)", "length (greedy)", "return (greedy)",
-              *(f"episodes to {k} oracle" for k in keys), *(f"seconds to {k} oracle" for k in keys),
-              "seconds per run", f"rolling length after {study['equal_wall_s']:,.0f} s"]  # fmt: skip
+    header = ["configuration", "seeds", "length (sampled)", "return (sampled)", "length (greedy)", "return (greedy)",
+              "length, channel cut at evaluation", *(f"episodes to {k} oracle" for k in keys),
+              *(f"seconds to {k} oracle" for k in keys), "seconds per run",
+              f"rolling length after {study['equal_wall_s']:,.0f} s"]  # fmt: skip
     lines = [
-        f"# bitcomm compare: {study['recipe']} recipe, {plural(study['seeds'], 'seed', 'seeds')} x "
-        f"{study['episodes']:,} episodes",
+        f"# bitcomm compare: {study['recipe']} recipe, {seeds_phrase(study, summary['configurations'])} x "
+        f"{study['episodes']:,} episodes" + (" (finished runs)" if study["report"] else ""),
         "",
         f"Task: {env['size']}x{env['size']} grid, {env['n_agents']} agents, K = {channel['bits']} bits, delay "
         f"{channel['delay']}, flip {channel['flip_prob']:g}, drop {channel['drop_prob']:g}"
         + "".join(f"; varied {k}: {', '.join(_format(x) for x in v)}" for k, v in study["vary"].items())
-        + f". Evaluation: {study['eval_episodes']} episodes of seed {study['eval_seed']}, sampled and greedy.",
+        + f". Evaluation: {study['eval_episodes']} episodes of seed {study['eval_seed']}: sampled, greedy, and "
+        "sampled with every message dropped (the channel cut: what the same policy does without communication).",
         "Each cell is the mean ± the 95% half-interval over seeds (Student t); (k/n): the seeds that reached the "
         "level, averaged over those; seconds are training wall time, with runs sharing the machine's cores. The "
         "last column reads every run's rolling mean at the quickest run's training time (equal wall-clock).",
@@ -789,12 +843,13 @@ def table_markdown(summary: dict[str, Any]) -> str:
     for variant, result in summary["oracle"].items():
         if result is not None:
             cells = [f"{result['mean_episode_length']:.2f}", f"{result['mean_team_return']:.2f}"] * 2
-            lines.append(markdown_row([f"oracle {variant}".strip(), *cells, *["—"] * (2 * len(keys) + 2)]))
+            lines.append(markdown_row([f"oracle {variant}".strip(), "—", *cells, *["—"] * (2 * len(keys) + 3)]))
     for c in summary["configurations"]:
         reached = [c["reached"][k] if c["reached"] is not None else None for k in keys]
-        cells = [c["name"]]
+        cells = [c["name"], str(c["seeds"])]
         for play in ("sampled", "greedy"):
             cells += [cell(c[play]["mean_episode_length"], ".2f"), cell(c[play]["mean_team_return"], ".2f")]
+        cells.append(cell(c["cut"]["mean_episode_length"], ".2f"))
         for what, fmt in (("episodes", ",.0f"), ("wall_s", ",.1f")):
             cells += [_reached_cell(r, what, fmt) for r in reached]
         cells += [cell(c["wall_s"], ",.1f"), cell(c["rolling_at_equal_wall"], ".2f")]
@@ -802,8 +857,8 @@ def table_markdown(summary: dict[str, Any]) -> str:
     lines += per_seed_markdown(
         summary,
         _seed_cell,
-        "Length of each run's final policy, sampled (greedy), on the evaluation episodes; then the training "
-        "episodes and seconds at which its rolling length first fell below each level (—: never).",
+        "Length of each run's final policy, sampled (greedy; channel cut), on the evaluation episodes; then the "
+        "training episodes and seconds at which its rolling length first fell below each level (—: never).",
     )
     lines += along_budget_markdown(summary, "length", ".2f")
     return "\n".join(lines) + "\n"
@@ -811,7 +866,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
 
 def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train what is missing, then write curves.csv, curves.png/.svg, table.md and summary.json; returns the summary."""
-    runs = plan(cfg)
+    runs = study_runs(plan(cfg), cfg, log)
     cfg.out.mkdir(parents=True, exist_ok=True)
     tasks = {r.configuration.task_variant: variant_task(cfg, r.configuration.values) for r in runs}
     oracle = {variant: oracle_result(task, cfg.eval_episodes, cfg.eval_seed) for variant, task in tasks.items()}

@@ -30,6 +30,7 @@ from bitcomm.studies.compare import (
     CHOICES,
     ENV_STUDY_SEEDS,
     NO_COMM,
+    PLAYS,
     TECHNIQUES,
     VERBS,
     Configuration,
@@ -46,10 +47,11 @@ from bitcomm.studies.compare import (
     markdown_row,
     on_grid,
     per_seed_markdown,
-    plural,
     read_columns,
     read_evaluation,
     run_record,
+    seeds_phrase,
+    study_runs,
     technique_entry,
     write_atomic,
     write_curves_csv,
@@ -60,8 +62,6 @@ CURVE_COLUMNS = ("team_return_rolling", "team_return", "episode_length")
 """The `charts/` columns of a wrapped-env run's metrics.csv an `EnvCurve` holds (and curves.csv's names)."""
 MEASURES = ("mean_team_return", "mean_episode_length")
 """What the table and summary give of each play (`bitcomm.learn.env_eval.EnvEvalResult`)."""
-PLAYS = ("sampled", "greedy", "cut")
-"""How each run is measured: sampling, the most likely action and message, sampling with the channel cut."""
 
 
 @dataclass(frozen=True)
@@ -77,6 +77,8 @@ class EnvCompareConfig:
     jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
     eval_episodes: int = 1000
     eval_seed: int = 1000
+    report: bool = False
+    """Train nothing: report the runs that have played their budget."""
 
     def __post_init__(self) -> None:
         check_study_fields(self)
@@ -139,6 +141,7 @@ def summarize(cfg: EnvCompareConfig, runs: list[Run], curves: dict[Path, EnvCurv
             records.append({**record, **{play: evaluation[play] for play in PLAYS}})
         entry: dict[str, Any] = {
             **technique_entry(conf),
+            "seeds": len(records),
             "wall_s": interval([r["wall_s"] for r in records]),
             "final_rolling_team_return": interval([r["final_rolling_team_return"] for r in records]),
             "rolling_at_equal_wall": interval([r["rolling_at_equal_wall"] for r in records]),
@@ -156,6 +159,7 @@ def summarize(cfg: EnvCompareConfig, runs: list[Run], curves: dict[Path, EnvCurv
             "channel": base.pop("channel"),
             "episodes": cfg.base.episodes,
             "seeds": cfg.seeds,
+            "report": cfg.report,
             "techniques": list(cfg.techniques),
             "learning": {
                 k: v
@@ -174,12 +178,12 @@ def summarize(cfg: EnvCompareConfig, runs: list[Run], curves: dict[Path, EnvCurv
 def table_markdown(summary: dict[str, Any]) -> str:
     """table.md: one row per technique, mean ± 95% half-interval over seeds."""
     study, ch = summary["study"], summary["study"]["channel"]
-    header = ["configuration", "return (sampled)", "return (greedy)", "return, channel cut at evaluation",
+    header = ["configuration", "seeds", "return (sampled)", "return (greedy)", "return, channel cut at evaluation",
               "episode length (sampled)", "rolling return at the end",
               f"rolling return after {study['equal_wall_s']:,.0f} s", "seconds per run"]  # fmt: skip
     lines = [
-        f"# bitcomm compare: {study['env']}, {plural(study['seeds'], 'seed', 'seeds')} x {study['episodes']:,} "
-        "episodes",
+        f"# bitcomm compare: {study['env']}, {seeds_phrase(study, summary['configurations'])} x "
+        f"{study['episodes']:,} episodes" + (" (finished runs)" if study["report"] else ""),
         "",
         f"Env kwargs {json.dumps(study['env_kwargs'])}; channel K = {ch['bits']} bits, delay {ch['delay']}, flip "
         f"{ch['flip_prob']:g}, drop {ch['drop_prob']:g}, topology {json.dumps(ch['topology'])}. Evaluation: "
@@ -193,7 +197,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
         *markdown_header(header),
     ]
     for c in summary["configurations"]:
-        cells = [c["name"], *(cell(c[play]["mean_team_return"], ".3f") for play in PLAYS)]
+        cells = [c["name"], str(c["seeds"]), *(cell(c[play]["mean_team_return"], ".3f") for play in PLAYS)]
         cells += [cell(c["sampled"]["mean_episode_length"], ".2f"), cell(c["final_rolling_team_return"], ".3f")]
         cells += [cell(c["rolling_at_equal_wall"], ".3f"), cell(c["wall_s"], ",.1f")]
         lines.append(markdown_row(cells))
@@ -223,14 +227,13 @@ def plot_curves(runs: list[Run], curves: dict[Path, EnvCurve], cfg: EnvCompareCo
     ax.set_ylabel("mean team return (rolling)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    ax.set_title(f"{cfg.base.env}, K = {cfg.base.channel.bits}: mean and 95% interval over {cfg.seeds} seeds",
-                 fontsize=9)  # fmt: skip
+    ax.set_title(f"{cfg.base.env}, K = {cfg.base.channel.bits}: mean and 95% interval over seeds", fontsize=9)
     save_figure(fig, path)
 
 
 def run_env_compare(cfg: EnvCompareConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train what is missing, then write curves.csv, curves.png/.svg, table.md and summary.json; returns the summary."""
-    runs = plan(cfg)
+    runs = study_runs(plan(cfg), cfg, log)
     cfg.out.mkdir(parents=True, exist_ok=True)
     execute_all(runs, cfg, log, describe)
     curves = {r.folder: read_env_curve(r.folder) for r in runs}
