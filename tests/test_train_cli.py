@@ -159,10 +159,38 @@ def test_controller_sampling_matches_eval(run_dir: Path) -> None:
     assert ours.to_dict() == got
 
 
+def test_commands_whose_time_is_torchs_take_threads(
+    run_dir: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--threads` (default: the idle cores, or OMP_NUM_THREADS) on train, eval, analyze and variance: a command
+    beside busy cores must not fight them with torch's own thread count."""
+    from bitcomm.cli import build_parser
+    from bitcomm.commands.flags import default_threads
+
+    parser = build_parser()
+    for argv in (["train"], ["eval", "RUN"], ["analyze"], ["variance", "RUN"]):
+        assert parser.parse_args([*argv, "--threads", "3"]).threads == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert default_threads() is None  # torch reads the variable itself
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert 1 <= (default_threads() or 0) <= (os.cpu_count() or 1)
+
+    before = torch.get_num_threads()
+    try:
+        assert main(["eval", str(run_dir), "--episodes", "100", "--seed", "5", "--threads", "1", "--json"]) == 0
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+    ours = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    theirs = bitcomm("eval", str(run_dir), "--episodes", "100", "--seed", "5", "--json").stdout  # OMP_NUM_THREADS=1
+    assert ours == json.loads(theirs.strip().splitlines()[-1])
+
+
 @pytest.mark.parametrize(
     "argv",
     [
         ["train", "--estimator", "foo"],
+        ["eval", "RUN", "--threads", "0"],
         ["train", "--episodes", "0"],
         ["train", "--lr", "-1"],
         ["eval", "{missing}"],

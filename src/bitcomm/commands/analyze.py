@@ -9,7 +9,16 @@ import sys
 from pathlib import Path
 
 from bitcomm.commands.common import add_task_flags
-from bitcomm.commands.flags import MAX_BATCH, MAX_SAMPLES, SEED, check_play, integer, out_dir
+from bitcomm.commands.flags import (
+    MAX_BATCH,
+    MAX_SAMPLES,
+    SEED,
+    add_threads_flag,
+    check_play,
+    integer,
+    out_dir,
+    use_threads,
+)
 from bitcomm.policies.source import add_policy_flags, source_from_args
 
 
@@ -34,6 +43,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--seed", type=SEED, default=0, help="seed of play and of the decoder's split (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the summary figures as one JSON object")
+    add_threads_flag(p)
     add_task_flags(p)
     add_policy_flags(p)
     p.set_defaults(run=run)
@@ -45,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
     source = source_from_args(args)
     task = source.task_from_args(args)
     check_play(task, "envs", args.envs, args.envs)
+    use_threads(args)
     samples = collect_messages(source.build(task, seed=args.seed), task, args.samples, args.envs, args.seed)
     report = analyze_samples(samples, task, source.label, args.seed)
     out = Path(args.out)

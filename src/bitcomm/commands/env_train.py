@@ -77,10 +77,8 @@ def env_config_from_args(args: argparse.Namespace) -> EnvTrainConfig:
                           **env_overrides(args))  # fmt: skip
 
 
-def train(args: argparse.Namespace, threads: int | None) -> int:
-    """Train on the env of `--env` (or resume such a run); `threads`: torch threads (None: OMP_NUM_THREADS)."""
-    import torch
-
+def train(args: argparse.Namespace) -> int:
+    """Train on the env of `--env` (or resume such a run), on the torch threads the caller has set."""
     from bitcomm.learn.env_eval import evaluate_env
     from bitcomm.learn.env_run import resume_env_config, train_env
 
@@ -96,8 +94,6 @@ def train(args: argparse.Namespace, threads: int | None) -> int:
         cfg = env_config_from_args(args)
     module = cfg.env.partition(":")[0].rpartition(".")[2]
     out = args.out or Path("runs") / f"env-{module}-{cfg.estimator}-{cfg.messages}-s{cfg.seed}"
-    if threads is not None:
-        torch.set_num_threads(threads)
     print(f"run folder: {out}{' (resumed)' if args.resume else ''}; env {cfg.env}", flush=True)
     checkpoint = train_env(cfg, out, resume=args.resume, progress=not args.quiet)
     print(f"checkpoint: {checkpoint}")

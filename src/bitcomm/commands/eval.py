@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 
 from bitcomm.commands.common import add_task_flags, print_result
-from bitcomm.commands.flags import EVAL_EPISODES, SEED, check_eval
+from bitcomm.commands.flags import EVAL_EPISODES, SEED, add_threads_flag, check_eval, use_threads
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -22,6 +22,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=SEED, default=0, help="seed of the episode set and of sampling (default %(default)s)")
     p.add_argument("--greedy", action="store_true", help="most likely move and message instead of sampling")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_threads_flag(p)
     add_task_flags(p)
     mark_task_defaults(p)
     p.set_defaults(run=run)
@@ -35,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.policies.evaluation import evaluate
     from bitcomm.policies.source import resolve_task
 
+    use_threads(args)
     if env_run_config(args.run_path) is not None:
         return env_train.evaluate(args)
     controller = Controller.load(args.run_path, seed=args.seed)

@@ -215,6 +215,37 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
         check_memory("num-envs", cfg.num_envs, onehot + rollouts, what)
 
 
+THREADS_HELP = "torch threads (default: the cores not busy by the load average, or OMP_NUM_THREADS when set)"
+
+
+def add_threads_flag(p: argparse.ArgumentParser, more: str = "") -> None:
+    """`--threads`, for every command whose time is torch's."""
+    p.add_argument("--threads", type=integer(1, MAX_JOBS), default=None, help=THREADS_HELP + more)
+
+
+def default_threads() -> int | None:
+    """The cores not busy now (by the 1-minute load average), at least 1; None when OMP_NUM_THREADS is set.
+
+    Measured (issue 20): with one other busy core, torch's default of 2 threads trained
+    2.9x slower (44.7 s per 1,280 episodes) while 1 thread lost far less (21.1 s); `bitcomm eval` of
+    200 32x32 episodes beside two busy cores took 11.9 s on 2 threads against 3.7 s on 1 (session 18).
+    """
+    if os.environ.get("OMP_NUM_THREADS"):
+        return None
+    cores = os.cpu_count() or 1
+    return max(1, cores - round(os.getloadavg()[0]))
+
+
+def use_threads(args: argparse.Namespace) -> int | None:
+    """Set torch's threads from `--threads` or `default_threads()`; returns the count (None: OMP_NUM_THREADS)."""
+    threads = args.threads or default_threads()
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+    return threads
+
+
 def check_episodes(episodes: int) -> int:
     """Evaluation episodes given other than on the command line (a library call, a resumed config)."""
     if isinstance(episodes, bool) or not isinstance(episodes, int) or not 1 <= episodes <= MAX_EVAL_EPISODES:

@@ -10,14 +10,22 @@ default local, `--workers`, `--staleness`; see `bitcomm.commands.backend_flags`)
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from bitcomm.commands import env_train
 from bitcomm.commands.backend_flags import add_backend_flags, execution
 from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.env_flags import add_env_flags
-from bitcomm.commands.flags import MAX_EVAL_EPISODES, MAX_JOBS, MAX_TRAIN_EPISODES, SEED, check_train, integer, out_dir
+from bitcomm.commands.flags import (
+    MAX_EVAL_EPISODES,
+    MAX_TRAIN_EPISODES,
+    SEED,
+    add_threads_flag,
+    check_train,
+    integer,
+    out_dir,
+    use_threads,
+)
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
 from bitcomm.learn.options import field_default
 from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
@@ -49,12 +57,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its latest checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument(
-        "--threads",
-        type=integer(1, MAX_JOBS),
-        default=None,
-        help="torch threads (default: the cores not busy by the load average, or OMP_NUM_THREADS when set); "
-        "in sync mode 2 or more run the critic's step beside the policy's, half the threads each, so a run on "
+    add_threads_flag(
+        p,
+        "; in sync mode 2 or more run the critic's step beside the policy's, half the threads each, so a run on "
         "2 threads is the run on 1 bit for bit and a busy core does not stall it (before, with one other busy "
         "core, 2 threads trained 2.9x slower than 1)",
     )
@@ -72,25 +77,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run)
 
 
-def default_threads() -> int | None:
-    """The cores not busy now (by the 1-minute load average), at least 1; None when OMP_NUM_THREADS is set.
-
-    Measured (issue 20): with one other busy core, torch's default of 2 threads trained
-    2.9x slower (44.7 s per 1,280 episodes) while 1 thread lost far less (21.1 s).
-    """
-    if os.environ.get("OMP_NUM_THREADS"):
-        return None
-    cores = os.cpu_count() or 1
-    return max(1, cores - round(os.getloadavg()[0]))
-
-
 def run(args: argparse.Namespace) -> int:
     from bitcomm.learn.config import make_train_config
     from bitcomm.learn.run import train
     from bitcomm.learn.run_folder import resume_config
 
     if args.env is not None or (args.resume and env_train.is_env_run(args.out)):
-        return env_train.train(args, args.threads or default_threads())
+        use_threads(args)
+        return env_train.train(args)
     env_train.check_env_only(args)
     out = args.out or Path("runs") / f"{args.recipe}-{args.estimator}-{args.messages}-s{args.seed}"
     if args.resume:
@@ -107,11 +101,7 @@ def run(args: argparse.Namespace) -> int:
         )
     cfg = execution(args, cfg)
     check_train(cfg)
-    threads = args.threads or default_threads()
-    if threads is not None:
-        import torch
-
-        torch.set_num_threads(threads)
+    threads = use_threads(args)
     print(
         f"run folder: {out}{' (resumed)' if args.resume else ''}; torch threads: {threads or 'OMP_NUM_THREADS'}",
         flush=True,

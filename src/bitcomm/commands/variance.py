@@ -10,7 +10,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from bitcomm.commands.common import add_task_flags
-from bitcomm.commands.flags import MAX_BATCH, MAX_REPEATS, SEED, check_play, integer, number, out_dir
+from bitcomm.commands.flags import (
+    MAX_BATCH,
+    MAX_REPEATS,
+    SEED,
+    add_threads_flag,
+    check_play,
+    integer,
+    number,
+    out_dir,
+    use_threads,
+)
 
 if TYPE_CHECKING:
     from bitcomm.studies.variance import VarianceConfig
@@ -65,6 +75,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--out", type=out_dir, default="variance", help="folder for variance.csv/.md/.png/.svg (default %(default)s)"
     )
     p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
+    add_threads_flag(p)
     add_task_flags(p)
     mark_task_defaults(p)
     p.set_defaults(run=run)
@@ -98,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
     vcfg = variance_config(args)
     stages = parse_stages(args.stages)
     files = [file for path in args.paths for file in select_stages(path, stages)]  # fail early, before measuring
+    use_threads(args)
     rows, task = [], None
     for file in files:
         stage = load_stage(file)
