@@ -62,6 +62,17 @@ def test_second_call_trains_nothing(study: Path, capsys: pytest.CaptureFixture[s
     assert (study / "summary.json").read_text() == before
 
 
+def test_report_trains_nothing(study: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = [*STUDY, "--out", str(study), "--report"]
+    argv[argv.index("--seeds") + 1] = "2"  # seed 1 of each technique was never trained: left out
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "--report: 2 runs not finished, left out" in out and "trained" not in out
+    assert not list(study.glob("runs/*/seed1"))
+    assert "1 of 2 seeds x 2,560 episodes (finished runs)" in (study / "table.md").read_text()
+    assert main([*STUDY, "--out", str(study)]) == 0  # the study's own files again, for the tests after this one
+
+
 def test_a_folder_holding_another_study_is_refused(study: Path, capsys: pytest.CaptureFixture[str]) -> None:
     argv = [*STUDY, "--out", str(study)]
     argv[argv.index("--lr") + 1] = "1e-3"
