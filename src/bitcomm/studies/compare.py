@@ -427,7 +427,8 @@ def execute_all(
         log(f"{plural(len(runs), 'run', 'runs')}, all finished and evaluated")
         return
     workers = plural(processes, "process", "processes")
-    log(f"{plural(len(runs), 'run', 'runs')}, {len(runs) - len(todo)} finished; {len(todo)} to go on {workers}")
+    done = len(runs) - len(todo)
+    log(f"{plural(len(runs), 'run', 'runs')}, {done} finished and evaluated; {len(todo)} to go on {workers}")
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(),)) as pool:
         futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
