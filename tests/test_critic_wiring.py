@@ -122,10 +122,14 @@ def test_the_probe_tells_the_wrong_wirings_apart() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ SPEC section 7
-def policy_gradients_after_one_step(recipe: str, zero_advantages: bool) -> dict[str, torch.Tensor]:
-    """The policy's gradient of one update step, with every entropy-type weight at zero."""
+ENTROPY_TYPE = ("entropy_move", "entropy_message", "entropy_message_marginal", "uniform_move")
+"""The learning options that weight an entropy-type term (`bitcomm.learn.objectives`)."""
+
+
+def policy_gradients_after_one_step(recipe: str, zero_advantages: bool, **weights: float) -> dict[str, torch.Tensor]:
+    """The policy's gradient of one update step, with every entropy-type weight at zero but `weights`."""
     torch.manual_seed(0)
-    cfg = make_train_config(recipe, TWO, num_envs=8, entropy_move=0.0, entropy_message=0.0, uniform_move=0.0)
+    cfg = make_train_config(recipe, TWO, num_envs=8, **{**dict.fromkeys(ENTROPY_TYPE, 0.0), **weights})
     learner = Learner(cfg)
     ro = Collector(TWO, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     adv = learner.advantages(ro)
@@ -145,6 +149,15 @@ def test_pure_recipes_give_the_policy_no_gradient_but_the_estimators(recipe: str
     for head in ("move_logits.weight", "message_logits.weight"):
         assert moved[head].abs().sum() > 0, head
     assert make_train_config(recipe).pure
+
+
+def test_the_marginal_message_entropy_reaches_the_message_head_alone() -> None:
+    """An entropy term of the message distribution: without advantages it moves the message head and leaves the
+    movement head still, as the per-message entropy bonus does; the recipe stays pure."""
+    grads = policy_gradients_after_one_step("reinforced", zero_advantages=True, entropy_message_marginal=0.1)
+    assert grads["message_logits.weight"].abs().sum() > 0
+    assert torch.count_nonzero(grads["move_logits.weight"]) == 0
+    assert make_train_config("reinforced", entropy_message_marginal=0.1).pure
 
 
 def test_the_supervised_recipe_reaches_the_message_head_without_advantages() -> None:

@@ -336,3 +336,27 @@ def test_onehot_samples_follow_the_softmax_including_messages_of_probability_zer
     p = torch.softmax(logits[0], -1)
     assert freq[2] == 0 and freq[5] == 0
     assert torch.allclose(freq, p, atol=4 * (p * (1 - p) / len(index)).sqrt().max().item())
+
+
+@pytest.mark.parametrize("name", ["bitwise", "onehot"])
+def test_the_marginal_entropy_is_that_of_the_average_message_distribution(name):
+    """By brute force over the 8 messages of K = 3: mean the rows' probabilities, take the entropy; a row alone
+    gives its own entropy; two rows sure of two messages give log 2, sure of one message 0."""
+    from bitcomm.policies.heads import marginal_entropy
+
+    head = make_head(name, 3)
+    logits = torch.randn(6, head.out_features, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    all_bits = torch.tensor([[(m >> (2 - k)) & 1 for k in range(3)] for m in range(8)], dtype=torch.uint8)
+    p = torch.stack([head.log_prob(logits, all_bits[m].expand(6, 3)) for m in range(8)], -1).exp().mean(0)
+    assert torch.allclose(marginal_entropy(head, logits), -(p * p.log()).sum())
+    assert torch.allclose(marginal_entropy(head, logits[:1]), head.entropy(logits[:1])[0])
+    sure = {"bitwise": 30.0 * (2.0 * all_bits[[1, 6]].double() - 1), "onehot": 60.0 * torch.eye(8)[[1, 6]].double()}
+    assert marginal_entropy(head, sure[name]).item() == pytest.approx(np.log(2), abs=1e-6)
+    assert marginal_entropy(head, sure[name][[0, 0]]).item() == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_marginal_entropy_bonus_needs_at_most_4096_messages():
+    wide = TaskConfig(EnvConfig(size=4, max_steps=20), ChannelConfig(bits=13))
+    assert make_train_config("reinforced", wide).entropy_message_marginal == 0.0
+    with pytest.raises(ConfigError, match="entropy-message-marginal=0.1: .* K <= 12 bits \\(K = 13\\)"):
+        make_train_config("reinforced", wide, entropy_message_marginal=0.1)

@@ -17,7 +17,7 @@ from bitcomm.errors import bad_value, check_int, check_number, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
 from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, RECIPES
-from bitcomm.policies.heads import MESSAGE_HEADS
+from bitcomm.policies.heads import MESSAGE_HEADS, check_marginal_bits
 from bitcomm.policies.networks import ModelConfig
 
 MODES = ("sync", "a3c")
@@ -57,6 +57,11 @@ class TrainConfig:
     gamma: float = 0.95
     entropy_move: float = 0.01
     entropy_message: float = 0.001
+    entropy_message_marginal: float = 0.0
+    """Weight of the entropy of the minibatch's average message distribution, H(mean_s Pm(. | s)): a bonus
+    for senders' states that use different messages, where `entropy_message` rewards each message for being
+    random. An entropy term on the sender's own distribution (no label, no receiver, no channel), so a run
+    with it is pure; it splits codes that two goals share (docs/tuning.md, session 18). Needs K <= 12."""
     uniform_move: float = 0.0
     """Weight of KL(uniform || move policy), a pull of (p - 1/5) on each move logit. The entropy
     bonus's pull, -p (log p + H), vanishes with an action's probability, so an action the penalties
@@ -148,6 +153,7 @@ class TrainConfig:
         for name in (
             "entropy_move",
             "entropy_message",
+            "entropy_message_marginal",
             "uniform_move",
             "clip",
             "goal_coef",
@@ -157,6 +163,7 @@ class TrainConfig:
             "checkpoint_seconds",
         ):
             check_number(name, getattr(self, name), 0.0)
+        check_marginal_bits(self.entropy_message_marginal, self.task.channel.bits)
         if 0 < self.train_max_steps <= self.task.channel.delay:
             raise bad_value("delay", self.task.channel.delay, f"must be < train_max_steps ({self.train_max_steps})")
         relaxed = self.goal_coef > 0 and not self.model.message_map

@@ -15,7 +15,7 @@ from typing import Any
 from bitcomm.envs.subproc_vector import check_workers
 from bitcomm.errors import bad_value, check_int, check_number, is_number
 from bitcomm.learn.estimators import ESTIMATORS
-from bitcomm.policies.heads import MESSAGE_HEADS
+from bitcomm.policies.heads import MESSAGE_HEADS, check_marginal_bits
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,9 @@ class EnvTrainConfig:
     adv_norm: bool = True
     entropy_action: float = 0.01
     entropy_message: float = 0.01
+    entropy_message_marginal: float = 0.0
+    """Weight of the entropy of the minibatch's average message distribution (as the grid's
+    `TrainConfig.entropy_message_marginal`); needs K <= 12."""
     max_grad_norm: float = 1.0
     hidden: tuple[int, ...] = (128, 128)
     """Widths of the policy's trunk and of the critic's body."""
@@ -95,8 +98,9 @@ class EnvTrainConfig:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
         for name in ("lr", "critic_lr", "max_grad_norm"):
             check_number(name, getattr(self, name), 0.0, strict=True)
-        for name in ("clip", "entropy_action", "entropy_message", "checkpoint_seconds"):
+        for name in ("clip", "entropy_action", "entropy_message", "entropy_message_marginal", "checkpoint_seconds"):
             check_number(name, getattr(self, name), 0.0)
+        check_marginal_bits(self.entropy_message_marginal, self.channel.bits)
         if not (is_number(self.gamma) and 0.0 < self.gamma <= 1.0):
             raise bad_value("gamma", self.gamma, "must be in (0, 1]")
         object.__setattr__(self, "hidden", tuple(self.hidden))

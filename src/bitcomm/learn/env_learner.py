@@ -33,6 +33,7 @@ from bitcomm.learn.env_rollout import EnvRollout
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator, policy_gradient_loss
 from bitcomm.learn.learner import scaled
 from bitcomm.learn.objectives import clipped_policy_loss, critic_mse
+from bitcomm.policies.heads import marginal_entropy
 from bitcomm.policies.mlp import MlpCritic, MlpPolicy
 
 
@@ -151,6 +152,10 @@ class EnvLearner:
         h_m = _masked_mean(msg_entropy, mask_m)
         loss = pg - self.n * (cfg.entropy_action * h_a + cfg.entropy_message * h_m)
         stats = {"losses/policy": pg.item(), "charts/entropy_action": h_a.item(), "charts/entropy_message": h_m.item()}
+        if cfg.entropy_message_marginal > 0:  # over the messages sent (objectives.MarginalMessageEntropy)
+            h_marginal = marginal_entropy(policy.head, msg_logits[mask_m])
+            loss = loss - self.n * cfg.entropy_message_marginal * h_marginal
+            stats["charts/entropy_message_marginal"] = h_marginal.item()
         return loss, stats
 
     def _critic_step(self, ro: EnvRollout, adv: Advantages, cols: torch.Tensor) -> float:

@@ -12,6 +12,8 @@ Reinforcement (SPEC section 7; every gradient reaching a policy head comes from 
                      -(1/#valid) sum_{t,b,j} sum_{head} min(r A, clip(r, 1-e, 1+e) A),  r = pi/pi_old
     Entropy move     -n w mean H(pi)          (mean over agent-steps; n puts it on the summed scale)
     Entropy message  -n w mean H(Pm)
+    Marginal message -n w H(mean Pm): the entropy of the minibatch's average message distribution, a bonus
+                     for states that use different messages (`entropy_message_marginal`, off by default)
     UniformMove      -n w mean_a log pi(a) = n w (KL(U || pi) + log 5): an entropy-type pull toward
                      uniform moves that, unlike H, grows without bound as a move's probability falls
 
@@ -43,6 +45,7 @@ from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.estimators import Advantages, policy_gradient_loss
 from bitcomm.learn.rollout import Rollout
+from bitcomm.policies.heads import marginal_entropy
 from bitcomm.policies.networks import PolicyNet
 
 
@@ -204,6 +207,20 @@ class Entropy:
 
 
 @dataclass(frozen=True)
+class MarginalMessageEntropy:
+    """-n w H(mean Pm): the entropy of the average, over the minibatch's agent-steps, of the message
+    distribution (`bitcomm.policies.heads.marginal_entropy`); logged as `charts/entropy_message_marginal`."""
+
+    weight: float
+    name: str = "entropy_message_marginal"
+    auxiliary: bool = False
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        h = marginal_entropy(b.policy.head, b.msg_logits)
+        return -(b.n * self.weight) * h, {f"charts/{self.name}": h.item()}
+
+
+@dataclass(frozen=True)
 class UniformMove:
     """-n w mean_a log pi(a) = n w (KL(U || pi) + log 5), U uniform over the 5 moves."""
 
@@ -321,6 +338,8 @@ def policy_terms(cfg: TrainConfig, codebook: CodeBook | None, regulariser_scale:
         Entropy("move", cfg.entropy_move * regulariser_scale),
         Entropy("message", cfg.entropy_message * regulariser_scale),
     ]
+    if cfg.entropy_message_marginal > 0:
+        terms.append(MarginalMessageEntropy(cfg.entropy_message_marginal * regulariser_scale))
     if cfg.uniform_move > 0:
         terms.append(UniformMove(cfg.uniform_move * regulariser_scale))
     if cfg.goal_coef > 0:

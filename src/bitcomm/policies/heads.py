@@ -19,6 +19,27 @@ import torch.nn.functional as F
 from bitcomm.channel.core import bits_to_index, index_to_bits
 from bitcomm.errors import bad_value
 
+MAX_MARGINAL_BITS = 12
+"""`marginal_entropy` sums over all 2^K messages: at most 4,096 of them."""
+
+
+def marginal_entropy(head: Any, logits: torch.Tensor) -> torch.Tensor:
+    """H(mean_i Pm(. | s_i)): the entropy of the average message distribution of the rows of `logits (N, out)`,
+    exact over all 2^K messages (K <= MAX_MARGINAL_BITS), differentiable. It is largest when different
+    senders' states put their mass on different messages; a message two states share lowers it."""
+    p = head.log_prob_of_terms(head.log_prob_terms(logits)).exp().mean(0)
+    return -(p * p.clamp(min=1e-30).log()).sum()
+
+
+def check_marginal_bits(weight: float, bits: int) -> None:
+    """One error line for a marginal entropy bonus (`entropy_message_marginal`) on more than 2^12 messages."""
+    if weight > 0 and bits > MAX_MARGINAL_BITS:
+        raise bad_value(
+            "entropy-message-marginal",
+            weight,
+            f"sums over all 2^K messages, so it needs K <= {MAX_MARGINAL_BITS} bits (K = {bits}); leave it at 0",
+        )
+
 
 class BitwiseHead:
     """K independent Bernoulli bits: log P(m) = sum_k log P(bit_k)."""
@@ -48,7 +69,7 @@ class BitwiseHead:
 
     def log_prob_of_terms(self, terms: torch.Tensor) -> torch.Tensor:
         """`(N, 2K)` terms (or their means) -> `(N, 2^K)` log-probability of every message (by index)."""
-        codes = index_to_bits(torch.arange(1 << self.bits), self.bits).float()  # (2^K, K)
+        codes = index_to_bits(torch.arange(1 << self.bits), self.bits).to(terms.dtype)  # (2^K, K)
         return terms[:, : self.bits] @ codes.T + terms[:, self.bits :] @ (1 - codes).T
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
