@@ -58,7 +58,7 @@ class TrainConfig:
     entropy_move: float = 0.01
     entropy_message: float = 0.001
     entropy_message_marginal: float = 0.0
-    """Weight of the entropy of the minibatch's average message distribution, H(mean_s Pm(. | s)): a bonus
+    """Weight of the entropy of the minibatch's average message distribution, H(mean_s Pm(m | s)): a bonus
     for senders' states that use different messages, where `entropy_message` rewards each message for being
     random. An entropy term on the sender's own distribution (no label, no receiver, no channel), so a run
     with it is pure; it splits codes that two goals share (docs/tuning.md, session 18). Needs K <= 12."""
