@@ -171,7 +171,9 @@ def test_anneal_entropy_scales_the_regularisers_by_the_budget_left(anneal):
     cfg = make_train_config("reinforced", TINY, num_envs=4, mode="sync", anneal_entropy=anneal)
     learner, collector = Learner(cfg), Collector(TINY, 4)
     rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
-    base = {"entropy_move": cfg.entropy_move, "entropy_message": cfg.entropy_message, "uniform_move": cfg.uniform_move}
+    names = ("entropy_move", "entropy_message", "entropy_message_marginal", "uniform_move")
+    base = {name: getattr(cfg, name) for name in names}
+    assert cfg.entropy_message_marginal > 0  # the default's: every regulariser follows the schedule
     for progress in (0.25, 1.0):
         learner.update(rollout, torch.Generator().manual_seed(0), progress=progress)
         weights = {t.name: t.weight for t in learner.terms if t.name in base}

@@ -8,8 +8,10 @@ Plain data with no heavy imports, so the command line can list the names without
   paper's V1/V2 do). What it adds to the paper is engineering that leaves the estimators' role
   intact: batched synchronous updates with PPO-style reuse and clipping, advantage normalisation,
   gamma 0.5, shorter training episodes, learning rates decayed to zero over the budget
-  (`anneal_lr`), observation features and a network shaped for the grid (each option named and
-  measured in docs/tuning.md).
+  (`anneal_lr`), observation features and a network shaped for the grid, and in place of the
+  per-message entropy bonus one on the batch's average message distribution
+  (`entropy_message_marginal`, session 18), which keeps two goals from sharing a code (each option
+  named and measured in docs/tuning.md).
 - `supervised`: `reinforced` plus three auxiliary losses that hand the sender a protocol (a
   self-labelled code book, a privileged goal label for the receiver's message decoder, and the
   sender's grounding in the goal it sees). Fast, but its messages are supervised: it bypasses both
@@ -34,7 +36,8 @@ _REINFORCED: dict[str, Any] = dict(
     minibatches=4,
     clip=0.2,
     adv_norm=True,
-    entropy_message=0.01,
+    entropy_message=0.0,
+    entropy_message_marginal=0.1,
     goal_coef=0.0,
     seen_coef=0.0,
     code_coef=0.0,
@@ -52,6 +55,7 @@ _SUPERVISED: dict[str, Any] = dict(
     train_max_steps=64,
     lr=1e-3,
     entropy_message=0.001,
+    entropy_message_marginal=0.0,
     goal_coef=1.0,
     seen_coef=1.0,
     code_coef=1.0,
