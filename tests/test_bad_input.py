@@ -77,6 +77,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
         for name in (
             "entropy-move",
             "entropy-message",
+            "entropy-message-marginal",
             "uniform-move",
             "clip",
             "goal-coef",

@@ -358,7 +358,11 @@ def test_the_marginal_entropy_is_that_of_the_average_message_distribution(name):
 
 
 def test_the_marginal_entropy_bonus_needs_at_most_4096_messages():
+    """Above 12 bits the default recipe trains with the per-message bonus instead; asked for, it is one line."""
     wide = TaskConfig(EnvConfig(size=4, max_steps=20), ChannelConfig(bits=13))
-    assert make_train_config("reinforced", wide).entropy_message_marginal == 0.0
+    assert make_train_config("reinforced", TINY).entropy_message_marginal == 0.1
+    cfg = make_train_config("reinforced", wide)
+    assert (cfg.entropy_message_marginal, cfg.entropy_message) == (0.0, 0.01)
+    assert make_train_config("reinforced", wide, entropy_message=0.003).entropy_message == 0.003
     with pytest.raises(ConfigError, match="entropy-message-marginal=0.1: .* K <= 12 bits \\(K = 13\\)"):
         make_train_config("reinforced", wide, entropy_message_marginal=0.1)

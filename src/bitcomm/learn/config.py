@@ -16,8 +16,8 @@ from bitcomm.config import TaskConfig
 from bitcomm.errors import bad_value, check_int, check_number, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
-from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, RECIPES
-from bitcomm.policies.heads import MESSAGE_HEADS, check_marginal_bits
+from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, RECIPES, WIDE_MESSAGES
+from bitcomm.policies.heads import MAX_MARGINAL_BITS, MESSAGE_HEADS, check_marginal_bits
 from bitcomm.policies.networks import ModelConfig
 
 MODES = ("sync", "a3c")
@@ -61,7 +61,8 @@ class TrainConfig:
     """Weight of the entropy of the minibatch's average message distribution, H(mean_s Pm(m | s)): a bonus
     for senders' states that use different messages, where `entropy_message` rewards each message for being
     random. An entropy term on the sender's own distribution (no label, no receiver, no channel), so a run
-    with it is pure; it splits codes that two goals share (docs/tuning.md, session 18). Needs K <= 12."""
+    with it is pure; it splits codes that two goals share (docs/tuning.md, session 18). Needs K <= 12: above,
+    a recipe's bonus gives way to the per-message one (`recipes.WIDE_MESSAGES`)."""
     uniform_move: float = 0.0
     """Weight of KL(uniform || move policy), a pull of (p - 1/5) on each move logit. The entropy
     bonus's pull, -p (log p + H), vanishes with an action's probability, so an action the penalties
@@ -220,6 +221,10 @@ def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = No
     """A TrainConfig from a recipe plus explicit options (None means "the recipe's value")."""
     if recipe not in RECIPES:
         raise bad_value("recipe", recipe, f"choose one of {', '.join(RECIPES)}")
-    values = {**RECIPES[recipe], **{k: v for k, v in overrides.items() if v is not None}}
+    task = task or TaskConfig()
+    values = dict(RECIPES[recipe])
+    if values.get("entropy_message_marginal", 0.0) > 0 and task.channel.bits > MAX_MARGINAL_BITS:
+        values.update(WIDE_MESSAGES)  # an explicit --entropy-message-marginal is still refused there
+    values.update({k: v for k, v in overrides.items() if v is not None})
     model = ModelConfig(**{k: values.pop(k) for k in list(values) if k in MODEL_OPTIONS})
-    return TrainConfig(task=task or TaskConfig(), model=model, recipe=recipe, **values)
+    return TrainConfig(task=task, model=model, recipe=recipe, **values)

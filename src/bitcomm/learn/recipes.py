@@ -93,5 +93,9 @@ RECIPES: dict[str, dict[str, Any]] = {
 }
 """Each recipe's values for the learning options; any option given explicitly overrides them."""
 
+WIDE_MESSAGES: dict[str, Any] = dict(entropy_message_marginal=0.0, entropy_message=0.01)
+"""What a recipe's marginal message entropy bonus gives way to on messages of more than 12 bits, where the
+exact sum over all 2^K messages is out of reach: the per-message bonus (`reinforced`'s of sessions 8-17)."""
+
 AUXILIARY = ("goal_coef", "seen_coef", "code_coef")
 """Options whose losses reach a policy head with a target other than the return (SPEC section 7)."""
