@@ -333,10 +333,14 @@ def read_evaluation(run: Run, episodes: int, seed: int) -> dict[str, Any] | None
     return record if same == (_latest(run.folder)["checkpoint"], episodes, seed) else None
 
 
-def missing_plays(run: Run, episodes: int, seed: int) -> tuple[str, ...]:
-    """The `PLAYS` the run's evaluation of its latest checkpoint on this episode set lacks (all without one)."""
-    record = read_evaluation(run, episodes, seed)
+def lacking(record: dict[str, Any] | None) -> tuple[str, ...]:
+    """The `PLAYS` an evaluation record lacks (all of them without one)."""
     return PLAYS if record is None else tuple(play for play in PLAYS if play not in record)
+
+
+def missing_plays(run: Run, episodes: int, seed: int) -> tuple[str, ...]:
+    """The `PLAYS` the run's evaluation of its latest checkpoint on this episode set lacks."""
+    return lacking(read_evaluation(run, episodes, seed))
 
 
 def _plays(run: Run, episodes: int, seed: int) -> dict[str, Callable[[], Any]]:
@@ -369,7 +373,7 @@ def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
         "seed": seed,
     }
     measures = _plays(run, episodes, seed)
-    record.update({play: measures[play]().to_dict() for play in missing_plays(run, episodes, seed)})
+    record.update({play: measures[play]().to_dict() for play in lacking(record)})
     write_atomic(run.folder / EVALUATION, json.dumps(record, indent=2) + "\n")
     return record
 
@@ -541,7 +545,7 @@ def threshold_key(multiple: float) -> str:
 def evaluation_of(run: Run, cfg: CompareConfig | EnvCompareConfig) -> dict[str, Any]:
     """The run's evaluation on the study's episode set; one line if it has none."""
     evaluation = read_evaluation(run, cfg.eval_episodes, cfg.eval_seed)
-    if evaluation is None or any(play not in evaluation for play in PLAYS):
+    if evaluation is None or lacking(evaluation):
         raise ConfigError(f"invalid run={str(run.folder)!r}: no evaluation of its latest checkpoint")
     return evaluation
 
@@ -559,13 +563,14 @@ def study_runs(runs: list[Run], cfg: CompareConfig | EnvCompareConfig, log: Call
     return finished
 
 
-def seeds_phrase(study: dict[str, Any], configurations: list[dict[str, Any]]) -> str:
-    """'5 seeds', or for a report whose configurations have finished different numbers of seeds, '2-5 seeds'."""
+def runs_phrase(study: dict[str, Any], configurations: list[dict[str, Any]]) -> str:
+    """A table title's count of runs: '5 seeds x 60,000 episodes', or for a report whose configurations have
+    finished fewer or different numbers of seeds, '2-5 of 5 seeds x 60,000 episodes (finished runs)'."""
     counts = sorted({len(c["runs"]) for c in configurations})
-    if len(counts) == 1 and counts[0] == study["seeds"]:
-        return plural(counts[0], "seed", "seeds")
-    low, high = counts[0], counts[-1]
-    return (f"{low}" if low == high else f"{low}-{high}") + f" of {plural(study['seeds'], 'seed', 'seeds')}"
+    seeds = plural(study["seeds"], "seed", "seeds")
+    if len(counts) > 1 or counts[0] != study["seeds"]:
+        seeds = (f"{counts[0]}" if len(counts) == 1 else f"{counts[0]}-{counts[-1]}") + f" of {seeds}"
+    return f"{seeds} x {study['episodes']:,} episodes" + (" (finished runs)" if study["report"] else "")
 
 
 def run_record(
@@ -827,8 +832,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
               *(f"seconds to {k} oracle" for k in keys), "seconds per run",
               f"rolling length after {study['equal_wall_s']:,.0f} s"]  # fmt: skip
     lines = [
-        f"# bitcomm compare: {study['recipe']} recipe, {seeds_phrase(study, summary['configurations'])} x "
-        f"{study['episodes']:,} episodes" + (" (finished runs)" if study["report"] else ""),
+        f"# bitcomm compare: {study['recipe']} recipe, {runs_phrase(study, summary['configurations'])}",
         "",
         f"Task: {env['size']}x{env['size']} grid, {env['n_agents']} agents, K = {channel['bits']} bits, delay "
         f"{channel['delay']}, flip {channel['flip_prob']:g}, drop {channel['drop_prob']:g}"

@@ -50,7 +50,7 @@ from bitcomm.studies.compare import (
     read_columns,
     read_evaluation,
     run_record,
-    seeds_phrase,
+    runs_phrase,
     study_runs,
     technique_entry,
     write_atomic,
@@ -182,8 +182,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
               "episode length (sampled)", "rolling return at the end",
               f"rolling return after {study['equal_wall_s']:,.0f} s", "seconds per run"]  # fmt: skip
     lines = [
-        f"# bitcomm compare: {study['env']}, {seeds_phrase(study, summary['configurations'])} x "
-        f"{study['episodes']:,} episodes" + (" (finished runs)" if study["report"] else ""),
+        f"# bitcomm compare: {study['env']}, {runs_phrase(study, summary['configurations'])}",
         "",
         f"Env kwargs {json.dumps(study['env_kwargs'])}; channel K = {ch['bits']} bits, delay {ch['delay']}, flip "
         f"{ch['flip_prob']:g}, drop {ch['drop_prob']:g}, topology {json.dumps(ch['topology'])}. Evaluation: "
