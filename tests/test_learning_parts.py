@@ -165,19 +165,30 @@ def test_the_schedule_follows_anneal_episodes_when_a_run_is_trained_in_pieces():
         make_train_config("reinforced", TINY, anneal_lr=False, anneal_episodes=1000)  # nothing would anneal
 
 
-@pytest.mark.parametrize("anneal", [True, False])
-def test_anneal_entropy_scales_the_regularisers_by_the_budget_left(anneal):
-    """The entropy bonuses and the uniform-move pull follow the schedule; the policy-gradient term does not."""
-    cfg = make_train_config("reinforced", TINY, num_envs=4, mode="sync", anneal_entropy=anneal)
+MOVE_REGULARISERS = ("entropy_move", "uniform_move")
+MESSAGE_REGULARISERS = ("entropy_message", "entropy_message_marginal")
+
+
+@pytest.mark.parametrize(
+    "option, decayed",
+    [
+        ("anneal_entropy", MOVE_REGULARISERS + MESSAGE_REGULARISERS),
+        ("anneal_move_entropy", MOVE_REGULARISERS),
+        (None, ()),
+    ],
+)
+def test_entropy_schedules_scale_their_regularisers_by_the_budget_left(option, decayed):
+    """`anneal_entropy` decays every regulariser, `anneal_move_entropy` the move ones alone; the
+    policy-gradient term follows neither."""
+    cfg = make_train_config("reinforced", TINY, num_envs=4, mode="sync", **({option: True} if option else {}))
     learner, collector = Learner(cfg), Collector(TINY, 4)
     rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
-    names = ("entropy_move", "entropy_message", "entropy_message_marginal", "uniform_move")
-    base = {name: getattr(cfg, name) for name in names}
-    assert cfg.entropy_message_marginal > 0  # the default's: every regulariser follows the schedule
+    base = {name: getattr(cfg, name) for name in MOVE_REGULARISERS + MESSAGE_REGULARISERS}
+    assert cfg.entropy_message_marginal > 0  # the default's: every regulariser is in the terms
     for progress in (0.25, 1.0):
         learner.update(rollout, torch.Generator().manual_seed(0), progress=progress)
         weights = {t.name: t.weight for t in learner.terms if t.name in base}
-        assert weights == pytest.approx({k: w * (1 - progress) if anneal else w for k, w in base.items()})
+        assert weights == pytest.approx({k: w * (1 - progress) if k in decayed else w for k, w in base.items()})
         assert [t.name for t in learner.terms][0] == "policy_gradient"
 
 

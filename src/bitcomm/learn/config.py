@@ -104,9 +104,14 @@ class TrainConfig:
     anneal_entropy: bool = False
     """Decay the entropy bonuses and the uniform-move pull linearly to zero on `anneal_lr`'s schedule: the
     policies end nearer deterministic, so greedy play can follow what sampled play learned."""
+    anneal_move_entropy: bool = False
+    """Decay the move entropy bonus and the uniform-move pull (not the message regularisers) linearly to zero on
+    `anneal_lr`'s schedule (on in the `reinforced` recipe): greedy moves then follow what sampled moves learned,
+    while the message bonuses keep the senders' codes apart to the end (`anneal_entropy` decays those too)."""
     anneal_episodes: int = 0
-    """Episodes over which `anneal_lr` and `anneal_entropy` decay (0: the budget, `episodes`): a run trained
-    in pieces (each resumed with a larger budget, as benchmarks/solve.py does) keeps one schedule."""
+    """Episodes over which the schedules (`anneal_lr`, `anneal_entropy`, `anneal_move_entropy`) decay (0: the
+    budget, `episodes`): a run trained in pieces (each resumed with a larger budget, as benchmarks/solve.py does)
+    keeps one schedule."""
     update_dtype: str = "float32"
     """Precision of the update's network passes, `float32` or `bfloat16` (bitcomm.learn.precision): bfloat16
     matrix products under `torch.autocast`, about half the cost on CPUs with native bfloat16 (AVX512-BF16,
@@ -139,7 +144,9 @@ class TrainConfig:
         check_int("anneal_episodes", self.anneal_episodes, 0)
         if self.anneal_episodes and not self.anneals:
             raise bad_value(
-                "anneal-episodes", self.anneal_episodes, "acts only with --anneal-lr or --anneal-entropy; leave it at 0"
+                "anneal-episodes",
+                self.anneal_episodes,
+                "acts only with --anneal-lr, --anneal-entropy or --anneal-move-entropy; leave it at 0",
             )
         if self.staleness and self.backend != "ray":
             raise bad_value("staleness", self.staleness, "acts only on --backend ray; leave it at 0")
@@ -185,11 +192,12 @@ class TrainConfig:
 
     @property
     def anneals(self) -> bool:
-        """Whether anything follows the schedule (`anneal_lr`, `anneal_entropy`), so that its horizon matters."""
-        return self.anneal_lr or self.anneal_entropy
+        """Whether anything follows the schedule (`anneal_lr`, `anneal_entropy`, `anneal_move_entropy`), so that
+        its horizon matters."""
+        return self.anneal_lr or self.anneal_entropy or self.anneal_move_entropy
 
     def schedule_progress(self, episodes: int) -> float:
-        """The fraction of the schedules (`anneal_lr`, `anneal_entropy`) done after `episodes` episodes, at most 1."""
+        """The fraction of the schedules (`anneal_lr`, `anneal_*entropy`) done after `episodes` episodes, at most 1."""
         return min(1.0, episodes / (self.anneal_episodes or self.episodes))
 
     @property

@@ -83,9 +83,12 @@ class Learner:
     @property
     def terms(self) -> list[Term]:
         """The objective terms of the policy, from the config (read per step: A3C shares the code book), the
-        regularisers scaled down as the budget is played with `anneal_entropy`."""
-        scale = max(0.0, 1.0 - self.progress) if self.cfg.anneal_entropy else 1.0
-        return policy_terms(self.cfg, self.codebook, scale)
+        regularisers scaled down as the budget is played with `anneal_entropy` (all) or `anneal_move_entropy`
+        (the move ones)."""
+        decayed = max(0.0, 1.0 - self.progress)
+        message_scale = decayed if self.cfg.anneal_entropy else 1.0
+        move_scale = decayed if self.cfg.anneal_entropy or self.cfg.anneal_move_entropy else 1.0
+        return policy_terms(self.cfg, self.codebook, message_scale, move_scale)
 
     # ---------------------------------------------------------------- critic
     def critic_values(
@@ -186,7 +189,7 @@ class Learner:
     # ---------------------------------------------------------------- update
     def update(self, ro: Rollout, generator: torch.Generator | None = None, progress: float = 0.0) -> dict[str, float]:
         """One update on the batch `ro`; `progress` is the fraction of the budget played so far (`anneal_lr`,
-        `anneal_entropy`)."""
+        `anneal_entropy`, `anneal_move_entropy`)."""
         cfg = self.cfg
         self.progress = progress
         if cfg.anneal_lr:

@@ -329,19 +329,22 @@ class CodeTerm:
 
 
 # ------------------------------------------------------------------------------------------------ recipe
-def policy_terms(cfg: TrainConfig, codebook: CodeBook | None, regulariser_scale: float = 1.0) -> list[Term]:
+def policy_terms(
+    cfg: TrainConfig, codebook: CodeBook | None, message_scale: float = 1.0, move_scale: float = 1.0
+) -> list[Term]:
     """The terms `cfg` asks for, in the order they are evaluated: the reinforcement terms (the entropy
-    bonuses always, for their figures; they and the uniform-move pull weighted by `regulariser_scale` times
-    the config's weight), then each auxiliary term whose weight is positive."""
+    bonuses always, for their figures; the message bonuses weighted by `message_scale` times the config's
+    weight, the move bonus and the uniform-move pull by `move_scale`), then each auxiliary term whose weight
+    is positive."""
     terms: list[Term] = [
         PolicyGradient(cfg.clip),
-        Entropy("move", cfg.entropy_move * regulariser_scale),
-        Entropy("message", cfg.entropy_message * regulariser_scale),
+        Entropy("move", cfg.entropy_move * move_scale),
+        Entropy("message", cfg.entropy_message * message_scale),
     ]
     if cfg.entropy_message_marginal > 0:
-        terms.append(MarginalMessageEntropy(cfg.entropy_message_marginal * regulariser_scale))
+        terms.append(MarginalMessageEntropy(cfg.entropy_message_marginal * message_scale))
     if cfg.uniform_move > 0:
-        terms.append(UniformMove(cfg.uniform_move * regulariser_scale))
+        terms.append(UniformMove(cfg.uniform_move * move_scale))
     if cfg.goal_coef > 0:
         terms.append(GoalTerm(cfg.goal_coef, cfg.channel_noise))
     if cfg.seen_coef > 0:

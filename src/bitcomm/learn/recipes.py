@@ -8,10 +8,11 @@ Plain data with no heavy imports, so the command line can list the names without
   paper's V1/V2 do). What it adds to the paper is engineering that leaves the estimators' role
   intact: batched synchronous updates with PPO-style reuse and clipping, advantage normalisation,
   gamma 0.5, shorter training episodes, learning rates decayed to zero over the budget
-  (`anneal_lr`), observation features and a network shaped for the grid, and in place of the
+  (`anneal_lr`), observation features and a network shaped for the grid, in place of the
   per-message entropy bonus one on the batch's average message distribution
-  (`entropy_message_marginal`, session 18), which keeps two goals from sharing a code (each option
-  named and measured in docs/tuning.md).
+  (`entropy_message_marginal`, session 18), which keeps two goals from sharing a code, and the move
+  regularisers decayed to zero with the rates (`anneal_move_entropy`, session 19), so that greedy
+  moves end as good as sampled ones (each option named and measured in docs/tuning.md).
 - `supervised`: `reinforced` plus three auxiliary losses that hand the sender a protocol (a
   self-labelled code book, a privileged goal label for the receiver's message decoder, and the
   sender's grounding in the goal it sees). Fast, but its messages are supervised: it bypasses both
@@ -47,6 +48,7 @@ _REINFORCED: dict[str, Any] = dict(
     plane_coords=True,
     message_map=False,
     anneal_lr=True,
+    anneal_move_entropy=True,
 )
 
 _SUPERVISED: dict[str, Any] = dict(
@@ -63,6 +65,7 @@ _SUPERVISED: dict[str, Any] = dict(
     coords=True,
     message_map=True,
     anneal_lr=False,
+    anneal_move_entropy=False,
 )
 """The former `fast` recipe, as measured in docs/tuning.md sessions 1-7."""
 
