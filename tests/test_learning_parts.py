@@ -162,7 +162,9 @@ def test_the_schedule_follows_anneal_episodes_when_a_run_is_trained_in_pieces():
     assert make_train_config("reinforced", TINY, episodes=250, anneal_lr=True).schedule_progress(200) == 0.8
     assert piece.schedule_progress(5000) == 1.0  # played past the schedule: the rates stay at zero
     with pytest.raises(ConfigError, match="anneal-episodes"):
-        make_train_config("reinforced", TINY, anneal_lr=False, anneal_episodes=1000)  # nothing would anneal
+        make_train_config(  # nothing would anneal
+            "reinforced", TINY, anneal_lr=False, anneal_move_entropy=False, anneal_episodes=1000
+        )
 
 
 MOVE_REGULARISERS = ("entropy_move", "uniform_move")
@@ -170,17 +172,17 @@ MESSAGE_REGULARISERS = ("entropy_message", "entropy_message_marginal")
 
 
 @pytest.mark.parametrize(
-    "option, decayed",
+    "schedules, decayed",
     [
-        ("anneal_entropy", MOVE_REGULARISERS + MESSAGE_REGULARISERS),
-        ("anneal_move_entropy", MOVE_REGULARISERS),
-        (None, ()),
+        (dict(anneal_entropy=True, anneal_move_entropy=False), MOVE_REGULARISERS + MESSAGE_REGULARISERS),
+        (dict(anneal_entropy=False, anneal_move_entropy=True), MOVE_REGULARISERS),  # the default's
+        (dict(anneal_entropy=False, anneal_move_entropy=False), ()),
     ],
 )
-def test_entropy_schedules_scale_their_regularisers_by_the_budget_left(option, decayed):
+def test_entropy_schedules_scale_their_regularisers_by_the_budget_left(schedules, decayed):
     """`anneal_entropy` decays every regulariser, `anneal_move_entropy` the move ones alone; the
     policy-gradient term follows neither."""
-    cfg = make_train_config("reinforced", TINY, num_envs=4, mode="sync", **({option: True} if option else {}))
+    cfg = make_train_config("reinforced", TINY, num_envs=4, mode="sync", **schedules)
     learner, collector = Learner(cfg), Collector(TINY, 4)
     rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     base = {name: getattr(cfg, name) for name in MOVE_REGULARISERS + MESSAGE_REGULARISERS}
