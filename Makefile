@@ -32,8 +32,11 @@ train: install
 		$(if $(THREADS),--threads $(THREADS)) && \
 	$(BIN)/bitcomm eval "$$run" --episodes 2000 --seed 0
 
+# the suite's files split over TEST_JOBS processes (pytest-xdist), whole files to one process so a module's
+# shared study is trained once; tests/conftest.py gives each process one torch thread
+TEST_JOBS ?= 2
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_JOBS) --dist loadfile
 
 lint: install
 	$(BIN)/ruff check src tests benchmarks

@@ -276,11 +276,12 @@ def test_every_flag_has_help_and_a_default_shown() -> None:
 
 
 def test_help_is_fast_and_imports_no_torch() -> None:
-    """`bitcomm --help` builds every parser: that must not import torch (2 s) and must take < 0.5 s."""
-    code = "import sys, time; t = time.perf_counter(); import bitcomm.cli; bitcomm.cli.build_parser(); "
-    code += "print(time.perf_counter() - t, 'torch' in sys.modules)"
+    """`bitcomm --help` builds every parser: that must not import torch (2 s) and must take < 0.5 s of CPU (the
+    process's own time, which other processes sharing the machine do not inflate as they do wall time)."""
+    code = "import sys, time; t = time.process_time(); import bitcomm.cli; bitcomm.cli.build_parser(); "
+    code += "print(time.process_time() - t, 'torch' in sys.modules)"
     best = math.inf
-    for _ in range(3):  # the best of three: other processes share this machine
+    for _ in range(3):  # the best of three: disk caches warm up
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=os.environ)
         seconds, torch_loaded = out.stdout.split()
         assert torch_loaded == "False"

@@ -24,6 +24,9 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
 ray = pytest.importorskip("ray")
 
+STARTUP_S = 300
+"""How long a run may take to write its first row or checkpoint: `make test` runs two test files at once, and a
+loaded 2-core machine starts Ray and a driver slowly (over 60 s seen)."""
 TINY = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--quiet", "--eval-episodes", "0"]
 
 
@@ -72,7 +75,7 @@ def kill_an_actor_after_a_row(run: Path) -> threading.Thread:
     before = len(rows(run)) if (run / "metrics.csv").is_file() else 0
 
     def kill() -> None:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + STARTUP_S
         while time.monotonic() < deadline and not ((run / "metrics.csv").is_file() and len(rows(run)) > before):
             time.sleep(0.01)
         names = [a["name"] for a in ray.util.list_named_actors(all_namespaces=True)]
@@ -104,7 +107,7 @@ def test_sync_is_bit_for_bit_through_a_killed_actor_and_a_killed_driver(cluster:
         env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     latest = out / "checkpoints" / "latest.json"
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + STARTUP_S
     while not latest.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     proc.send_signal(signal.SIGKILL)

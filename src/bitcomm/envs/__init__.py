@@ -11,8 +11,9 @@ are re-exported here, and `bitcomm.envs.channel` still names them, for code writ
 had a package of its own.)
 """
 
+from typing import Any
+
 from bitcomm.channel.core import Channel, bits_to_index, bits_to_onehot, index_to_bits, index_to_onehot
-from bitcomm.envs import goal_exchange_v0
 from bitcomm.envs.core import MOVE_NAMES, N_MOVES, FinishedEpisodes, GoalExchangeCore, StepResult
 from bitcomm.envs.vec import Observation, VecGoalExchange
 
@@ -31,3 +32,13 @@ __all__ = [
     "index_to_bits",
     "index_to_onehot",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """`goal_exchange_v0` loads on first use: it imports PettingZoo and Gymnasium (0.14 s), which the array core
+    and the command line's parsers do not need."""
+    if name == "goal_exchange_v0":
+        import importlib
+
+        return importlib.import_module("bitcomm.envs.goal_exchange_v0")
+    raise AttributeError(f"module 'bitcomm.envs' has no attribute {name!r}")
