@@ -62,6 +62,15 @@ def test_ablation_rows_are_single_changes_that_build_valid_configs() -> None:
             make_train_config(base, TaskConfig(), **change)
 
 
+def test_every_recipe_names_the_same_options() -> None:
+    """The ablation compares recipes key by key: an option one recipe leaves to the config's default would be
+    missing from the rows, and a row set "to paper" would keep the default recipe's value of it."""
+    from bitcomm.learn.recipes import RECIPES
+
+    names = {name: set(options) for name, options in RECIPES.items()}
+    assert all(keys == names["reinforced"] for keys in names.values()), names
+
+
 def test_ablation_runs_a_row_and_resumes_from_its_result(tmp_path: Path) -> None:
     argv = [sys.executable, "benchmarks/ablation.py", "--size", "3", "--bits", "4", "--minutes", "0.002", "--chunk",
             "16", "--threads", "1", "--only", "mode", "--out", str(tmp_path)]  # fmt: skip

@@ -87,14 +87,17 @@ RECIPES: dict[str, dict[str, Any]] = {
         code_coef=0.0,
         uniform_move=0.0,
         entropy_message=0.001,
+        entropy_message_marginal=0.0,
         anneal_lr=False,
+        anneal_move_entropy=False,
         encoder="conv",
         coords=False,
         plane_coords=False,
         message_map=False,
     ),
 }
-"""Each recipe's values for the learning options; any option given explicitly overrides them."""
+"""Each recipe's values for the learning options; any option given explicitly overrides them. Every recipe names
+the same options, so that two recipes compare key by key (`benchmarks/ablation.py` sets one to the other's)."""
 
 WIDE_MESSAGES: dict[str, Any] = dict(entropy_message_marginal=0.0, entropy_message=0.01)
 """What a recipe's marginal message entropy bonus gives way to on messages of more than 12 bits, where the
