@@ -20,6 +20,7 @@ import pytest
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
+from bitcomm.learn.run_folder import machine, machine_label
 from bitcomm.studies.compare import (
     CHOICES,
     CompareConfig,
@@ -27,6 +28,7 @@ from bitcomm.studies.compare import (
     budget_marks,
     execute,
     first_below,
+    machines_sentence,
     plan,
     rolling_at_episodes,
 )
@@ -127,6 +129,9 @@ def test_study_writes_every_file_well_formed(study: tuple[Path, str]) -> None:
     for row, c in zip(main_table[2:], summary["configurations"], strict=True):
         assert row[cut_column].startswith(f"{c['cut']['mean_episode_length']['mean']:.2f} ± ")
     assert text.startswith("# bitcomm compare: reinforced recipe, 2 seeds x 64 episodes\n")
+    here = machine_label(machine())
+    assert all(r["machines"] == [here] for c in summary["configurations"] for r in c["runs"])
+    assert f"Every run trained on one machine ({here})." in text
     assert "| " + " | ".join(main_table[0]) + " |" in stdout  # the main table is printed
 
     by_name = {c["name"]: c for c in summary["configurations"]}
@@ -246,6 +251,19 @@ def test_partial_run_is_resumed_and_another_run_is_refused(tmp_path: Path) -> No
     other, = plan(CompareConfig(**common, episodes=48, learning={"num_envs": 16, "lr": 0.01}))  # fmt: skip
     with pytest.raises(ConfigError, match="lr"):
         execute(other, 20, 1000)
+
+
+def test_the_table_names_the_machines_whose_seconds_it_mixes() -> None:
+    def summary(*runs: list[str]) -> dict[str, Any]:
+        return {"configurations": [{"runs": [{"machines": m} for m in runs]}]}
+
+    assert (
+        machines_sentence(summary(["A, 2 cores"], ["A, 2 cores"])) == "Every run trained on one machine (A, 2 cores)."
+    )
+    mixed = machines_sentence(summary(["A, 2 cores"], ["B, 16 cores"], ["B, 16 cores", "A, 2 cores"]))
+    assert mixed.startswith("The runs trained on 2 machines (A, 2 cores: 2 runs; B, 16 cores: 2 runs)")
+    assert "seconds compare only between runs of one machine" in mixed
+    assert "do not record their machines" in machines_sentence(summary(["unrecorded"], ["unrecorded"]))
 
 
 def test_time_to_a_level_is_the_first_batch_below_it() -> None:

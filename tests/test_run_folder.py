@@ -31,6 +31,7 @@ from bitcomm.checkpoint import (
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
+from bitcomm.learn.run_folder import machine, machine_label, run_machines
 from bitcomm.run_lock import LOCK, run_lock
 
 TASK = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16"]
@@ -234,6 +235,35 @@ def test_latest_cannot_follow_a_link_outside(run: Path, capsys) -> None:
     shutil.move(file, outside / file.name)
     file.symlink_to(outside / file.name)
     refused(capsys, "eval", str(run), "--episodes", "10", naming="links outside the run folder")
+
+
+# ---------------------------------------------------------------------------------------------- record
+def test_each_start_and_resume_is_recorded_with_its_machine(run: Path, capsys) -> None:
+    """A run resumed on another machine or commit says which part ran where; the first start's oracle is kept."""
+    config = json.loads((run / "config.json").read_text())
+    (start,) = config["starts"]
+    assert start["episodes"] == 0 and start["machine"] == machine() and start["torch_threads"] >= 1
+    assert start["git_commit"] == config["git_commit"] and start["versions"] == config["versions"]
+    assert run_machines(run) == [machine_label(machine())]
+
+    elsewhere = {**start, "machine": {"cpu": "Other CPU", "cores": 16}, "git_commit": "a" * 40}
+    (run / "config.json").write_text(json.dumps({**config, "starts": [elsewhere]}))
+    rc, err = cli(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64")
+    assert rc == 0, err
+    resumed = json.loads((run / "config.json").read_text())
+    assert [s["episodes"] for s in resumed["starts"]] == [0, 48]
+    assert resumed["starts"][0] == elsewhere and resumed["starts"][1]["machine"] == machine()
+    assert resumed["oracle_mean_episode_length"] == config["oracle_mean_episode_length"]
+    assert run_machines(run) == ["Other CPU, 16 cores", machine_label(machine())]
+
+    # a run begun before starts were kept: its first start is what config.json said, machine unrecorded
+    legacy = {k: v for k, v in resumed.items() if k != "starts"}
+    (run / "config.json").write_text(json.dumps({**legacy, "git_commit": "b" * 40}))
+    rc, err = cli(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "80")
+    assert rc == 0, err
+    starts = json.loads((run / "config.json").read_text())["starts"]
+    assert [s["episodes"] for s in starts] == [0, 64] and starts[0]["git_commit"] == "b" * 40
+    assert run_machines(run) == ["unrecorded", machine_label(machine())]
 
 
 # ---------------------------------------------------------------------------------------------- leftovers

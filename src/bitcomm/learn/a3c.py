@@ -38,9 +38,8 @@ from bitcomm.learn.run_folder import (
     checkpoint_weights,
     finite_or_stop,
     learner_state,
-    oracle_level,
+    oracle_record,
     prepare,
-    read_config_json,
     restore_learner,
     save_run_checkpoint,
     write_config,
@@ -174,11 +173,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
         restore_learner(learner, saved)
         prog.restore(saved)
         start_batch = int(saved.get("next_batch", prog.batches))
-        previous = read_config_json(out)
-        extra = {"oracle_mean_episode_length": previous.get("oracle_mean_episode_length")}
-    else:
-        extra = {"oracle_mean_episode_length": oracle_level(cfg)}
-    write_config(cfg, out, extra)
+    write_config(cfg, out, saved, oracle_record)
     logger = Logger(out, prog.batches if saved is not None else None)
     n = cfg.task.env.n_agents
 

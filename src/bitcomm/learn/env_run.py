@@ -69,7 +69,7 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
         generator.set_state(saved["generator"])
         torch.set_rng_state(saved["torch_rng"])
         prog.restore(saved)
-    write_config(cfg, out, {})
+    write_config(cfg, out, saved)
     logger = Logger(out, prog.batches if saved is not None else None)
 
     def play_and_learn() -> dict[str, Any]:

@@ -41,9 +41,8 @@ from bitcomm.learn.run_folder import (
     Logger,
     Progress,
     finite_or_stop,
-    oracle_level,
+    oracle_record,
     prepare,
-    read_config_json,
     restore_learner,
     save_learner,
     write_config,
@@ -238,10 +237,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
         torch.set_rng_state(saved["torch_rng"])
         prog.restore(saved)
         next_batch = int(saved.get("next_batch", prog.batches))
-        extra = {"oracle_mean_episode_length": read_config_json(out).get("oracle_mean_episode_length")}
-    else:
-        extra = {"oracle_mean_episode_length": oracle_level(cfg)}
-    write_config(cfg, out, extra)
+    write_config(cfg, out, saved, oracle_record)
     logger = Logger(out, prog.batches if saved is not None else None)
     n, S, N = cfg.task.env.n_agents, cfg.staleness, cfg.workers
     version, dropped = 0, 0

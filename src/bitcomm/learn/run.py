@@ -32,9 +32,8 @@ from bitcomm.learn.run_folder import (
     Progress,
     finite_or_stop,
     has_checkpoint,
-    oracle_level,
+    oracle_record,
     prepare,
-    read_config_json,
     restore_learner,
     save_learner,
     train_batches,
@@ -82,10 +81,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
         generator.set_state(saved["generator"])
         torch.set_rng_state(saved["torch_rng"])  # anything drawing from the global generator continues too
         prog.restore(saved)
-        config_extra = {k: v for k, v in read_config_json(out).items() if k == "oracle_mean_episode_length"}
-    else:
-        config_extra = {"oracle_mean_episode_length": oracle_level(cfg)}
-    write_config(cfg, out, config_extra)
+    write_config(cfg, out, saved, oracle_record)
     logger = Logger(out, prog.batches if saved is not None else None)
     n = cfg.task.env.n_agents
 

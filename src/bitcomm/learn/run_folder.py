@@ -1,6 +1,7 @@
 """The run folder both trainers write, and what a run keeps between updates:
 
-    <out>/config.json          TrainConfig + seed, library versions, git commit, command line
+    <out>/config.json          TrainConfig + seed, library versions, git commit, command line, and each
+                               start or resume with its machine (`write_config`)
     <out>/metrics.csv          one row per batch (flat namespaced keys), the source of every plot
     <out>/tb/                  the same rows for TensorBoard
     <out>/learning_curve.png   mean episode length against episodes, from metrics.csv (and .svg)
@@ -17,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import json
+import os
 import platform
 import signal
 import subprocess
@@ -84,6 +86,11 @@ def oracle_level(cfg: TrainConfig, episodes: int = 2000) -> float | None:
         return None
 
 
+def oracle_record(cfg: TrainConfig) -> dict[str, Any]:
+    """What a fresh grid run measures once for its config.json: the oracle's level on its task."""
+    return {"oracle_mean_episode_length": oracle_level(cfg)}
+
+
 class RunConfig(Protocol):
     """What the run folder reads of a config: the grid's `TrainConfig` or a wrapped env's `EnvTrainConfig`."""
 
@@ -100,18 +107,76 @@ class RunConfig(Protocol):
     def to_dict(self) -> dict[str, Any]: ...
 
 
-def write_config(cfg: RunConfig, out: Path, extra: dict[str, Any]) -> None:
+def machine() -> dict[str, Any]:
+    """What ran a run, so that its seconds can be set beside another run's: the CPU's model (Linux's
+    /proc/cpuinfo, else `platform.processor()`), its logical cores, the OS and the architecture."""
+    cpu = platform.processor() or "unknown"
+    with contextlib.suppress(OSError):
+        models = (line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                  if line.startswith("model name"))  # fmt: skip
+        cpu = next(models, cpu)
+    return {"cpu": cpu, "cores": os.cpu_count(), "system": platform.system(), "arch": platform.machine()}
+
+
+UNRECORDED = "unrecorded"
+"""`machine_label` of a start whose machine was not kept (runs made before `starts` were)."""
+
+
+def machine_label(record: dict[str, Any] | None) -> str:
+    """One machine record as a phrase ("AMD EPYC, 2 cores"), `UNRECORDED` for runs made before it was kept."""
+    if not record:
+        return UNRECORDED
+    return f"{record.get('cpu', 'unknown')}, {record.get('cores', '?')} cores"
+
+
+CARRIED = ("oracle_mean_episode_length",)
+"""config.json keys a resumed run keeps from its first start (measured once, not again at every resume)."""
+
+
+def write_config(
+    cfg: RunConfig, out: Path, saved: dict[str, Any] | None, measure: Callable[[Any], dict[str, Any]] | None = None
+) -> None:
+    """config.json: the config, seed, versions, git commit and command of this start, `measure(cfg)`'s figures
+    (a fresh run's) or those a resumed run keeps (`CARRIED`), and `starts`: one entry per start or resume
+    (episodes played before it, time, commit, versions, threads, machine, command), so a run resumed on
+    another machine or commit says which part of it ran where."""
+    start = {
+        "episodes": int(saved["episodes"]) if saved is not None else 0,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "git_commit": _git_commit(),
+        "versions": _versions(),
+        "torch_threads": torch.get_num_threads(),
+        "machine": machine(),
+        "command": sys.argv,
+    }
+    starts: list[dict[str, Any]] = []
+    if saved is None:
+        extra = measure(cfg) if measure is not None else {}
+    else:
+        previous = read_config_json(out)
+        extra = {k: previous[k] for k in CARRIED if k in previous}
+        # a run begun before starts were kept: its first start as config.json recorded it, machine unknown
+        first = {"episodes": 0, **{k: previous.get(k) for k in ("git_commit", "versions", "command")}}
+        starts = previous.get("starts") or [first]
     record = {
         **cfg.to_dict(),
         "seed": cfg.seed,
-        "versions": _versions(),
-        "git_commit": _git_commit(),
+        "versions": start["versions"],
+        "git_commit": start["git_commit"],
         "command": sys.argv,
         **extra,
+        "starts": [*starts, start],
     }
     tmp = out / ".config.json.tmp"
     tmp.write_text(json.dumps(record, indent=2) + "\n")
     tmp.replace(out / "config.json")
+
+
+def run_machines(out: Path) -> list[str]:
+    """The machines (`machine_label`) that trained the run in `out`, in the order of its starts ("unrecorded"
+    for a run made before they were kept, or a folder without config.json)."""
+    starts = (read_config_json(out).get("starts") if (out / "config.json").is_file() else None) or [{}]
+    return list(dict.fromkeys(machine_label(s.get("machine")) for s in starts))
 
 
 def read_json_object(path: Path, what: str = "file") -> dict[str, Any]:

@@ -576,17 +576,41 @@ def runs_phrase(study: dict[str, Any], configurations: list[dict[str, Any]]) -> 
 def run_record(
     run: Run, curve: Any, out: Path, equal_wall: float, marks: list[int], field: str, measure: str
 ) -> dict[str, Any]:
-    """What every study's summary gives of a run: where it is, what it played, and its curve's rolling `field`
-    (named `measure`) at its end, at the study's equal wall-clock time and at the episodes `marks`."""
+    """What every study's summary gives of a run: where it is, what it played, which machines trained it, and its
+    curve's rolling `field` (named `measure`) at its end, at the study's equal wall-clock time and at the episodes
+    `marks`."""
+    from bitcomm.learn.run_folder import run_machines
+
     return {
         "seed": run.seed,
         "folder": str(run.folder.relative_to(out)),
+        "machines": run_machines(run.folder),
         "episodes": int(curve.episodes[-1]),
         "wall_s": float(curve.wall_s[-1]),
         f"final_rolling_{measure}": float(getattr(curve, field)[-1]),
         "rolling_at_equal_wall": rolling_at(curve, equal_wall, field),
         "rolling_at_episodes": [rolling_at_episodes(curve, e, field) for e in marks],
     }
+
+
+def machines_sentence(summary: dict[str, Any]) -> str:
+    """table.md's word on where the seconds come from: one machine, or which machines and how many runs each (a
+    run resumed elsewhere counts for each), since seconds compare only between runs of one machine."""
+    from bitcomm.learn.run_folder import UNRECORDED
+
+    counts: dict[str, int] = {}
+    for run in (r for c in summary["configurations"] for r in c["runs"]):
+        for label in run["machines"]:
+            counts[label] = counts.get(label, 0) + 1
+    if list(counts) == [UNRECORDED]:
+        return "The runs do not record their machines (made before bitcomm kept them)."
+    if len(counts) == 1:
+        return f"Every run trained on one machine ({next(iter(counts))})."
+    parts = "; ".join(f"{label}: {plural(n, 'run', 'runs')}" for label, n in counts.items())
+    return (
+        f"The runs trained on {len(counts)} machines ({parts}): seconds compare only between runs of one machine "
+        "(summary.json names each run's)."
+    )
 
 
 def along_budget(records: list[dict[str, Any]], marks: list[int]) -> list[dict[str, Any] | None]:
@@ -841,7 +865,8 @@ def table_markdown(summary: dict[str, Any]) -> str:
         "sampled with every message dropped (the channel cut: what the same policy does without communication).",
         "Each cell is the mean ± the 95% half-interval over seeds (Student t); (k/n): the seeds that reached the "
         "level, averaged over those; seconds are training wall time, with runs sharing the machine's cores. The "
-        "last column reads every run's rolling mean at the quickest run's training time (equal wall-clock).",
+        "last column reads every run's rolling mean at the quickest run's training time (equal wall-clock). "
+        + machines_sentence(summary),
         "",
         *markdown_header(header),
     ]

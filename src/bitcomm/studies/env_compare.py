@@ -43,6 +43,7 @@ from bitcomm.studies.compare import (
     evaluation_of,
     execute_all,
     interval,
+    machines_sentence,
     markdown_header,
     markdown_row,
     on_grid,
@@ -191,7 +192,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
         "Each cell is the mean team return (higher is better) ± the 95% half-interval over seeds (Student t); "
         "seconds are training wall time, with runs sharing the machine's cores. The rolling-return columns read "
         "every run's training curve at its end (equal episodes) and at the quickest run's training time (equal "
-        "wall-clock).",
+        "wall-clock). " + machines_sentence(summary),
         "",
         *markdown_header(header),
     ]
