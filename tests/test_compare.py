@@ -131,7 +131,7 @@ def test_study_writes_every_file_well_formed(study: tuple[Path, str]) -> None:
     assert text.startswith("# bitcomm compare: reinforced recipe, 2 seeds x 64 episodes\n")
     here = machine_label(machine())
     assert all(r["machines"] == [here] for c in summary["configurations"] for r in c["runs"])
-    assert f"Every run trained on one machine ({here})." in text
+    assert f"Every run ran on one machine ({here})." in text
     assert "| " + " | ".join(main_table[0]) + " |" in stdout  # the main table is printed
 
     by_name = {c["name"]: c for c in summary["configurations"]}
@@ -257,11 +257,9 @@ def test_the_table_names_the_machines_whose_seconds_it_mixes() -> None:
     def summary(*runs: list[str]) -> dict[str, Any]:
         return {"configurations": [{"runs": [{"machines": m} for m in runs]}]}
 
-    assert (
-        machines_sentence(summary(["A, 2 cores"], ["A, 2 cores"])) == "Every run trained on one machine (A, 2 cores)."
-    )
+    assert machines_sentence(summary(["A, 2 cores"], ["A, 2 cores"])) == "Every run ran on one machine (A, 2 cores)."
     mixed = machines_sentence(summary(["A, 2 cores"], ["B, 16 cores"], ["B, 16 cores", "A, 2 cores"]))
-    assert mixed.startswith("The runs trained on 2 machines (A, 2 cores: 2 runs; B, 16 cores: 2 runs)")
+    assert mixed.startswith("The runs ran on 2 machines (A, 2 cores: 2 runs; B, 16 cores: 2 runs)")
     assert "seconds compare only between runs of one machine" in mixed
     assert "do not record their machines" in machines_sentence(summary(["unrecorded"], ["unrecorded"]))
 

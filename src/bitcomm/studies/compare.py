@@ -605,10 +605,10 @@ def machines_sentence(summary: dict[str, Any]) -> str:
     if list(counts) == [UNRECORDED]:
         return "The runs do not record their machines (made before bitcomm kept them)."
     if len(counts) == 1:
-        return f"Every run trained on one machine ({next(iter(counts))})."
+        return f"Every run ran on one machine ({next(iter(counts))})."
     parts = "; ".join(f"{label}: {plural(n, 'run', 'runs')}" for label, n in counts.items())
     return (
-        f"The runs trained on {len(counts)} machines ({parts}): seconds compare only between runs of one machine "
+        f"The runs ran on {len(counts)} machines ({parts}): seconds compare only between runs of one machine "
         "(summary.json names each run's)."
     )
 
@@ -753,7 +753,7 @@ def plot_curves(
             grid, lengths = on_grid(seeds)
             mean, lo, hi = mean_interval(lengths)
             color = f"C{CHOICES.index(conf.technique)}"
-            ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({len(seeds)} seeds)")
+            ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({plural(len(seeds), 'seed', 'seeds')})")
             ax.fill_between(grid, lo, hi, color=color, alpha=0.2, lw=0)
             shown += [lo, hi]
         result = oracle[task_variant]

@@ -48,6 +48,7 @@ from bitcomm.studies.compare import (
     markdown_row,
     on_grid,
     per_seed_markdown,
+    plural,
     read_columns,
     read_evaluation,
     run_record,
@@ -221,7 +222,7 @@ def plot_curves(runs: list[Run], curves: dict[Path, EnvCurve], cfg: EnvCompareCo
         grid, returns = on_grid(seeds, "return_rolling")
         mean, lo, hi = mean_interval(returns)
         color = f"C{CHOICES.index(conf.technique)}"
-        ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({len(seeds)} seeds)")
+        ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({plural(len(seeds), 'seed', 'seeds')})")
         ax.fill_between(grid, lo, hi, color=color, alpha=0.2, lw=0)
     ax.set_xlabel("environment episodes")
     ax.set_ylabel("mean team return (rolling)")
