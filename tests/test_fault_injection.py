@@ -151,6 +151,8 @@ RESUME_CASES: dict[str, Callable[[Path], str]] = {
     "config.json: a JSON list": _file("config.json", b"[1]"),
     "config.json: binary": _file("config.json", b"\x00\xff\xfe"),
     "config.json: missing": _file("config.json", None),
+    "config.json: starts not a list": _file("config.json", b'{"starts": 5}'),
+    "config.json: starts of numbers": _file("config.json", b'{"starts": [1]}'),
     "metrics.csv: binary": _file("metrics.csv", b"\xff\xfe\x00\x01garbage\n\x00\n"),
     "metrics.csv: batch not a number": _file("metrics.csv", b"batch,episodes\nabc,16\n2,32\n"),
     "metrics.csv: no batch column": _file("metrics.csv", b"episodes,agent_steps\n16,100\n32,200\n"),

@@ -157,13 +157,13 @@ def write_config(
         extra = {k: previous[k] for k in CARRIED if k in previous}
         # a run begun before starts were kept: its first start as config.json recorded it, machine unknown
         first = {"episodes": 0, **{k: previous.get(k) for k in ("git_commit", "versions", "command")}}
-        starts = previous.get("starts") or [first]
+        starts = recorded_starts(previous, out) or [first]
     record = {
         **cfg.to_dict(),
         "seed": cfg.seed,
         "versions": start["versions"],
         "git_commit": start["git_commit"],
-        "command": sys.argv,
+        "command": start["command"],
         **extra,
         "starts": [*starts, start],
     }
@@ -172,10 +172,19 @@ def write_config(
     tmp.replace(out / "config.json")
 
 
+def recorded_starts(record: dict[str, Any], out: Path) -> list[dict[str, Any]]:
+    """The `starts` of the run in `out` from its config.json `record` ([] for a run made before they were kept);
+    one line if they are not a list of objects (a hand-edited file), before a resume writes anything."""
+    starts = record.get("starts", [])
+    if not isinstance(starts, list) or not all(isinstance(s, dict) for s in starts):
+        raise ConfigError(f"invalid config={str(out / 'config.json')!r}: its 'starts' is not a list of objects")
+    return starts
+
+
 def run_machines(out: Path) -> list[str]:
     """The machines (`machine_label`) that trained the run in `out`, in the order of its starts ("unrecorded"
     for a run made before they were kept, or a folder without config.json)."""
-    starts = (read_config_json(out).get("starts") if (out / "config.json").is_file() else None) or [{}]
+    starts = (recorded_starts(read_config_json(out), out) if (out / "config.json").is_file() else []) or [{}]
     return list(dict.fromkeys(machine_label(s.get("machine")) for s in starts))
 
 
@@ -396,7 +405,8 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
     for key in ("episodes", "batches", "agent_steps", "wall_s", "recent_lengths", "recent_returns"):
         if key not in state:
             raise ConfigError(f"invalid checkpoint={info['path']!r}: its resume state lacks {key!r}")
-    read_config_json(out)  # refuse a damaged config.json or metrics.csv before anything is written
+    # refuse a damaged config.json or metrics.csv before anything is written
+    recorded_starts(read_config_json(out), out)
     if (out / "metrics.csv").is_file():
         read_metrics(out / "metrics.csv", int(state["batches"]))
     return {**state, "weights": weights, "info": info}

@@ -38,6 +38,7 @@ import json
 import math
 import os
 import typing
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -598,10 +599,7 @@ def machines_sentence(summary: dict[str, Any]) -> str:
     run resumed elsewhere counts for each), since seconds compare only between runs of one machine."""
     from bitcomm.learn.run_folder import UNRECORDED
 
-    counts: dict[str, int] = {}
-    for run in (r for c in summary["configurations"] for r in c["runs"]):
-        for label in run["machines"]:
-            counts[label] = counts.get(label, 0) + 1
+    counts = Counter(label for c in summary["configurations"] for r in c["runs"] for label in r["machines"])
     if list(counts) == [UNRECORDED]:
         return "The runs do not record their machines (made before bitcomm kept them)."
     if len(counts) == 1:
