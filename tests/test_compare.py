@@ -307,6 +307,7 @@ def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.C
 def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path) -> None:
     """An alarm or a Ctrl-C that reaches only the parent (as a scheduler sends it) ends the study at once,
     its running runs stopped rather than waited for; their checkpoints let the next call resume them."""
+    import multiprocessing
     import signal
     import time
 
@@ -324,3 +325,7 @@ def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path)
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
     assert code != 0 and time.monotonic() - start < 40
+    deadline = time.monotonic() + 20  # and no run trains on behind it (it would hold the parent at its exit)
+    while multiprocessing.active_children() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not multiprocessing.active_children()

@@ -442,8 +442,10 @@ def execute_all(
                 run, status = futures[future], future.result()
                 log(f"[{k}/{len(todo)}] {describe(run, status, cfg)}")
         except BaseException:  # Ctrl-C or an alarm in this process only: stop the running runs, not wait for them
+            # no public way before 3.14; taken before shutdown, which drops the pool's reference to its processes
+            running = list((getattr(pool, "_processes", None) or {}).values())
             pool.shutdown(wait=False, cancel_futures=True)
-            for process in list((getattr(pool, "_processes", None) or {}).values()):  # no public way before 3.14
+            for process in running:
                 process.terminate()  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
             raise
 
