@@ -734,6 +734,17 @@ def on_grid(curves: list[Any], field: str = "length_rolling") -> tuple[np.ndarra
     return grid, np.stack([np.interp(grid, c.episodes, getattr(c, field)) for c in curves])
 
 
+def draw_seed_band(ax: Any, technique: str, seeds: list[Any], field: str = "length_rolling") -> list[np.ndarray]:
+    """One technique's line on `ax`: the mean of its seeds' `field` with the 95% interval shaded, in the
+    technique's own colour (the same in every bitcomm figure); returns the band's edges for axis scaling."""
+    grid, values = on_grid(seeds, field)
+    mean, lo, hi = mean_interval(values)
+    color = f"C{CHOICES.index(technique)}"
+    ax.plot(grid, mean, color=color, lw=1.4, label=f"{technique} ({plural(len(seeds), 'seed', 'seeds')})")
+    ax.fill_between(grid, lo, hi, color=color, alpha=0.2, lw=0)
+    return [lo, hi]
+
+
 def plot_curves(
     runs: list[Run], curves: dict[Path, Curve], cfg: CompareConfig, oracle: dict[str, EvalResult | None], path: Path
 ) -> None:
@@ -749,13 +760,7 @@ def plot_curves(
     shown = []
     for ax, (variant, task_variant) in zip(axes, panels.items(), strict=False):
         for conf in dict.fromkeys(r.configuration for r in runs if r.configuration.variant == variant):
-            seeds = [curves[r.folder] for r in runs if r.configuration == conf]
-            grid, lengths = on_grid(seeds)
-            mean, lo, hi = mean_interval(lengths)
-            color = f"C{CHOICES.index(conf.technique)}"
-            ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({plural(len(seeds), 'seed', 'seeds')})")
-            ax.fill_between(grid, lo, hi, color=color, alpha=0.2, lw=0)
-            shown += [lo, hi]
+            shown += draw_seed_band(ax, conf.technique, [curves[r.folder] for r in runs if r.configuration == conf])
         result = oracle[task_variant]
         if result is not None:
             ax.axhline(result.mean_episode_length, color="k", ls="--", lw=1, label="oracle")

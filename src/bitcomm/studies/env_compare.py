@@ -40,15 +40,14 @@ from bitcomm.studies.compare import (
     budget_marks,
     cell,
     check_study_fields,
+    draw_seed_band,
     evaluation_of,
     execute_all,
     interval,
     machines_sentence,
     markdown_header,
     markdown_row,
-    on_grid,
     per_seed_markdown,
-    plural,
     read_columns,
     read_evaluation,
     run_record,
@@ -58,7 +57,6 @@ from bitcomm.studies.compare import (
     write_atomic,
     write_curves_csv,
 )
-from bitcomm.studies.stats import mean_interval
 
 CURVE_COLUMNS = ("team_return_rolling", "team_return", "episode_length")
 """The `charts/` columns of a wrapped-env run's metrics.csv an `EnvCurve` holds (and curves.csv's names)."""
@@ -219,11 +217,7 @@ def plot_curves(runs: list[Run], curves: dict[Path, EnvCurve], cfg: EnvCompareCo
     ax = fig.subplots()
     for conf in dict.fromkeys(r.configuration for r in runs):
         seeds = [curves[r.folder] for r in runs if r.configuration == conf]
-        grid, returns = on_grid(seeds, "return_rolling")
-        mean, lo, hi = mean_interval(returns)
-        color = f"C{CHOICES.index(conf.technique)}"
-        ax.plot(grid, mean, color=color, lw=1.4, label=f"{conf.technique} ({plural(len(seeds), 'seed', 'seeds')})")
-        ax.fill_between(grid, lo, hi, color=color, alpha=0.2, lw=0)
+        draw_seed_band(ax, conf.technique, seeds, "return_rolling")
     ax.set_xlabel("environment episodes")
     ax.set_ylabel("mean team return (rolling)")
     ax.grid(alpha=0.3)
