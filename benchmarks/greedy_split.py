@@ -6,12 +6,22 @@ close to sampled play and greedy moves are not, the arg-max movement loops where
 ambiguous (a reactive policy then needs randomness); `bitcomm analyze RUN --greedy` gives how ambiguous
 (decoder accuracy, bits transmitted against the goal's entropy).
 
-    python benchmarks/greedy_split.py RUN [--episodes 2000] [--seed 0]
+Then a census of the greedy episodes that never end. Greedy play is deterministic and, with the channel's
+delay of one step and no noise, the positions and the messages arriving make the whole state: once that
+joint state repeats, the episode cycles until it is cut (with a longer delay or a noisy channel, a repeat of
+what is seen is not yet a cycle). Each such episode is put down with its period (1: the agents stand still,
+or push against a wall, on fixed messages; 2: agents step back and forth), whether the messages arriving
+change along the cycle, and which agents choose a move in it.
+
+    python benchmarks/greedy_split.py RUN [--episodes 2000] [--seed 0] [--max-period 64] [--census-only]
 """
 
 from __future__ import annotations
 
 import argparse
+from collections import Counter
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -34,28 +44,87 @@ class MixedPlay:
         return np.asarray(moves, np.int64).reshape(n), np.asarray(bits, np.uint8).reshape(n, self.task.channel.bits)
 
 
-def main() -> None:
-    import torch
+def cycle_census(
+    policy: Callable[[Any], tuple[np.ndarray, np.ndarray]], task: Any, episodes: int, seed: int, max_period: int
+) -> tuple[int, Counter[tuple]]:
+    """A deterministic `policy` (greedy play) on the seeded episode set: how many first episodes are cut at
+    the step limit, and of those,
+    `(period or None, messages change along the cycle, agents that choose a move in it)` -> count. The period is
+    found on the last steps of the episode (None: no repeat within `max_period` steps)."""
+    from bitcomm.policies.evaluation import play_first_episodes, seeded_episode_envs
 
+    cut, census = 0, Counter[tuple]()
+    for _, env in seeded_episode_envs(task, episodes, seed):
+        positions, arriving, moved = [], [], []
+        length = np.zeros(env.num_envs, dtype=np.int64)
+        for step in play_first_episodes(env, policy):
+            after = env.observe()  # the state after this step (the buffers are live)
+            n = task.env.n_agents
+            positions.append(after.state[:, :n].reshape(env.num_envs, n, -1).argmax(-1))
+            arriving.append(np.packbits(after.received.reshape(env.num_envs, -1), axis=1))
+            moved.append(step.moves != 0)
+            fin = step.result.finished
+            first = step.active[fin.env_index]
+            length[fin.env_index[first]] = np.where(fin.success[first], 0, fin.length[first])  # 0: it ended
+        pos, msg, mov = np.stack(positions, 1), np.stack(arriving, 1), np.stack(moved, 1)
+        for b in np.flatnonzero(length):
+            last = length[b] - 2  # the state after the episode's second-to-last step; the last one resets it
+            key = np.concatenate([pos[b, : last + 1].astype(np.int64), msg[b, : last + 1].astype(np.int64)], 1)
+            repeats = (p for p in range(1, min(max_period, last) + 1) if np.array_equal(key[last], key[last - p]))
+            period = next(repeats, None)
+            span = slice(last + 1 - (period or 1), last + 1)
+            changes = period is not None and len({m.tobytes() for m in msg[b, span]}) > 1
+            movers = tuple(int(a) for a in np.flatnonzero(mov[b, span].any(0))) if period else ()
+            census[(period, changes, movers)] += 1
+            cut += 1
+    return cut, census
+
+
+def print_split(run: str, episodes: int, seed: int) -> None:
+    """The four-way table: sampled and greedy moves crossed with sampled and greedy bits."""
     from bitcomm.policies.agent_policies import BatchedPolicy
     from bitcomm.policies.controller import Controller
     from bitcomm.policies.evaluation import evaluate
+
+    print("| moves | bits | mean episode length | success |\n| --- | --- | --- | --- |")
+    for greedy_moves, greedy_bits in ((False, False), (True, True), (True, False), (False, True)):
+        controller = Controller.load(run, seed=seed)  # the same sampling stream for every row
+        policy = BatchedPolicy(MixedPlay(controller, greedy_moves, greedy_bits))
+        r = evaluate(policy, controller.task, episodes, seed)
+        names = ("greedy" if greedy_moves else "sampled", "greedy" if greedy_bits else "sampled")
+        print(f"| {names[0]} | {names[1]} | {r.mean_episode_length:.2f} | {r.success_rate:.3f} |", flush=True)
+
+
+def main() -> None:
+    import torch
+
+    from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
+    from bitcomm.policies.controller import Controller
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", help="run folder or checkpoint of a grid run")
     ap.add_argument("--episodes", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-period", type=int, default=64, help="longest cycle looked for (default %(default)s)")
+    ap.add_argument("--census-only", action="store_true", help="skip the four-way table (cheaper on large grids)")
     a = ap.parse_args()
     if a.episodes < 1:
         ap.error(f"--episodes {a.episodes}: must be >= 1")
+    if a.max_period < 1:
+        ap.error(f"--max-period {a.max_period}: must be >= 1")
     torch.set_num_threads(1)
-    print("| moves | bits | mean episode length | success |\n| --- | --- | --- | --- |")
-    for greedy_moves, greedy_bits in ((False, False), (True, True), (True, False), (False, True)):
-        controller = Controller.load(a.run, seed=a.seed)  # the same sampling stream for every row
-        policy = BatchedPolicy(MixedPlay(controller, greedy_moves, greedy_bits))
-        r = evaluate(policy, controller.task, a.episodes, a.seed)
-        names = ("greedy" if greedy_moves else "sampled", "greedy" if greedy_bits else "sampled")
-        print(f"| {names[0]} | {names[1]} | {r.mean_episode_length:.2f} | {r.success_rate:.3f} |", flush=True)
+    if not a.census_only:
+        print_split(a.run, a.episodes, a.seed)
+    controller = Controller.load(a.run, seed=a.seed)
+    greedy = BatchedPolicy(ControllerAgent(controller, greedy=True))
+    cut, census = cycle_census(greedy, controller.task, a.episodes, a.seed, a.max_period)
+    print(f"\ngreedy episodes cut at the step limit: {cut} of {a.episodes}")
+    print("\n| period of the joint state | messages arriving change | agents choosing a move | episodes |")
+    print("| --- | --- | --- | --- |")
+    for (period, changes, movers), count in sorted(census.items(), key=lambda kv: (-kv[1], str(kv[0]))):
+        where = f"no repeat in {a.max_period} steps" if period is None else str(period)
+        moving = ", ".join(map(str, movers)) or "none"
+        print(f"| {where} | {'yes' if changes else 'no'} | {moving if period else '-'} | {count} |")
 
 
 if __name__ == "__main__":

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = "--modes sync --recipes reinforced --batches 1 --warmup 1 --num-envs 8 --threads 1 --single-pass"
@@ -121,6 +125,57 @@ def test_greedy_split_plays_a_run_four_ways(tmp_path: Path) -> None:
     rows = [line for line in out.stdout.splitlines() if line.startswith(("| sampled", "| greedy"))]
     assert [r.split(" | ")[:2] for r in rows] == [["| sampled", "sampled"], ["| greedy", "greedy"],
                                                   ["| greedy", "sampled"], ["| sampled", "greedy"]]  # fmt: skip
+    lines = out.stdout.splitlines()
+    cut = [i for i, line in enumerate(lines) if line.startswith("greedy episodes cut at the step limit:")]
+    assert len(cut) == 1 and lines[cut[0]].endswith(" of 20"), out.stdout
+    census = lines[cut[0] + 4 :]  # after a blank line, the table's header and separator
+    assert sum(int(row.split(" | ")[-1].rstrip(" |")) for row in census) == int(lines[cut[0]].split()[-3])
+    alone = subprocess.run([sys.executable, "benchmarks/greedy_split.py", run, "--episodes", "20", "--census-only"],
+                           cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
+    assert alone.returncode == 0 and alone.stdout.strip().splitlines()[0] == lines[cut[0]], alone.stderr
+
+
+def _benchmark(name: str) -> Any:
+    """A script of benchmarks/ as a module (they are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_cycle_census_names_the_period_of_each_episode_that_never_ends() -> None:
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+
+    census = _benchmark("greedy_split").cycle_census
+    task = TaskConfig(EnvConfig(size=4, max_steps=24), ChannelConfig(bits=3))
+
+    def constant(move: int, bits: int = 0) -> Any:
+        def act(obs: Any) -> tuple[np.ndarray, np.ndarray]:
+            B, n = obs.planes.shape[:2]
+            return np.full((B, n), move), np.full((B, n, 3), bits, dtype=np.uint8)
+
+        return act
+
+    def to_and_fro(obs: Any) -> tuple[np.ndarray, np.ndarray]:  # down on even steps, up on odd; says its row
+        B, n = obs.planes.shape[:2]
+        row = obs.planes[:, :, 0].reshape(B, n, -1).argmax(-1) // 4
+        bits = np.stack([(row >> k) & 1 for k in range(3)], -1).astype(np.uint8)
+        return np.where(obs.t[:, None] % 2 == 0, 2, 1).repeat(n, 1), bits
+
+    # standing still never reaches a goal: every episode is cut, a fixed point with no move and a fixed message
+    cut, kinds = census(constant(0, 1), task, 40, 0, 8)
+    assert cut == 40 and kinds == {(1, False, ()): 40}
+    # pushing up ends against the top wall: still a period of 1, with both agents choosing a move
+    cut, kinds = census(constant(1), task, 40, 0, 8)
+    assert cut == sum(kinds.values()) and set(kinds) == {(1, False, (0, 1))}
+    # down then up forever (from the top row) or up and down: period 2, and the messages (each sender's row)
+    # change along it; episodes whose goals happen to be met on the way end and are not counted
+    cut, kinds = census(to_and_fro, task, 40, 0, 8)
+    assert cut == sum(kinds.values()) > 0 and {k[:2] for k in kinds} == {(2, True)}
+    # a cycle longer than the periods looked for is put down as None
+    cut, kinds = census(to_and_fro, task, 40, 0, 1)
+    assert set(kinds) == {(None, False, ())}
 
 
 def test_update_profile_groups_an_update_s_time_and_ends_with_json() -> None:

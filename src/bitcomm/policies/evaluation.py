@@ -18,7 +18,7 @@ import numpy as np
 
 from bitcomm.config import TaskConfig
 from bitcomm.envs.core import StepResult
-from bitcomm.envs.vec import Observation, VecGoalExchange
+from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.errors import bad_value
 from bitcomm.policies.reference import Policy
 
@@ -47,9 +47,10 @@ class EvalResult:
 
 
 class FirstEpisodeStep(NamedTuple):
-    """One step of the B first episodes: what was seen and done, and what came of it."""
+    """One step of the B first episodes: what was done and what came of it. (What the policy saw is not kept:
+    the environment's observation buffers are live, so by the time a step is yielded they already show the
+    state after it, and a slot that just ended shows its next episode's start.)"""
 
-    obs: Observation  # before the step (live buffers: copy what you keep)
     moves: np.ndarray
     bits: np.ndarray
     result: StepResult
@@ -64,7 +65,7 @@ def play_first_episodes(env: VecGoalExchange, policy: Policy) -> Iterator[FirstE
         obs = env.observe()
         moves, bits = policy(obs)
         result, dropped = env.step(moves, bits)
-        yield FirstEpisodeStep(obs, moves, bits, result, dropped, active.copy())
+        yield FirstEpisodeStep(moves, bits, result, dropped, active.copy())
         active[result.finished.env_index] = False
 
 
