@@ -49,24 +49,28 @@ def cycle_census(
 ) -> tuple[int, Counter[tuple]]:
     """A deterministic `policy` (greedy play) on the seeded episode set: how many first episodes are cut at
     the step limit, and of those,
-    `(period or None, messages change along the cycle, agents that choose a move in it)` -> count. The period is
-    found on the last steps of the episode (None: no repeat within `max_period` steps)."""
+    `(period or None, messages change along the cycle, agents that choose a move in it, each agent's (nearest,
+    farthest) distance to its goal along it)` -> count. The period is found on the last steps of the episode
+    (None: no repeat within `max_period` steps; the agents' distances are then those of the last step)."""
     from bitcomm.policies.evaluation import play_first_episodes, seeded_episode_envs
 
     cut, census = 0, Counter[tuple]()
     for _, env in seeded_episode_envs(task, episodes, seed):
-        positions, arriving, moved = [], [], []
+        positions, goals, arriving, moved = [], [], [], []
         length = np.zeros(env.num_envs, dtype=np.int64)
         for step in play_first_episodes(env, policy):
             after = env.observe()  # the state after this step (the buffers are live)
             n = task.env.n_agents
             positions.append(after.state[:, :n].reshape(env.num_envs, n, -1).argmax(-1))
+            goals.append(after.state[:, n : 2 * n].reshape(env.num_envs, n, -1).argmax(-1))
             arriving.append(np.packbits(after.received.reshape(env.num_envs, -1), axis=1))
             moved.append(step.moves != 0)
             fin = step.result.finished
             first = step.active[fin.env_index]
             length[fin.env_index[first]] = np.where(fin.success[first], 0, fin.length[first])  # 0: it ended
         pos, msg, mov = np.stack(positions, 1), np.stack(arriving, 1), np.stack(moved, 1)
+        (row, col), (goal_row, goal_col) = np.divmod(pos, task.env.size), np.divmod(np.stack(goals, 1), task.env.size)
+        distance = np.abs(row - goal_row) + np.abs(col - goal_col)  # (B, T, n) cells from each agent's goal
         for b in np.flatnonzero(length):
             last = length[b] - 2  # the state after the episode's second-to-last step; the last one resets it
             key = np.concatenate([pos[b, : last + 1].astype(np.int64), msg[b, : last + 1].astype(np.int64)], 1)
@@ -75,7 +79,8 @@ def cycle_census(
             span = slice(last + 1 - (period or 1), last + 1)
             changes = period is not None and len({m.tobytes() for m in msg[b, span]}) > 1
             movers = tuple(int(a) for a in np.flatnonzero(mov[b, span].any(0))) if period else ()
-            census[(period, changes, movers)] += 1
+            near, far = distance[b, span].min(0), distance[b, span].max(0)
+            census[(period, changes, movers, tuple(zip(near.tolist(), far.tolist(), strict=True)))] += 1
             cut += 1
     return cut, census
 
@@ -119,12 +124,14 @@ def main() -> None:
     greedy = BatchedPolicy(ControllerAgent(controller, greedy=True))
     cut, census = cycle_census(greedy, controller.task, a.episodes, a.seed, a.max_period)
     print(f"\ngreedy episodes cut at the step limit: {cut} of {a.episodes}")
-    print("\n| period of the joint state | messages arriving change | agents choosing a move | episodes |")
-    print("| --- | --- | --- | --- |")
-    for (period, changes, movers), count in sorted(census.items(), key=lambda kv: (-kv[1], str(kv[0]))):
+    print("\n| period of the joint state | messages arriving change | agents choosing a move | each agent's cells from "
+          "its goal along the cycle | episodes |")  # fmt: skip
+    print("| --- | --- | --- | --- | --- |")
+    for (period, changes, movers, distances), count in sorted(census.items(), key=lambda kv: (-kv[1], str(kv[0]))):
         where = f"no repeat in {a.max_period} steps" if period is None else str(period)
         moving = ", ".join(map(str, movers)) or "none"
-        print(f"| {where} | {'yes' if changes else 'no'} | {moving if period else '-'} | {count} |")
+        cells = ", ".join(str(lo) if lo == hi else f"{lo}-{hi}" for lo, hi in distances)
+        print(f"| {where} | {'yes' if changes else 'no'} | {moving if period else '-'} | {cells} | {count} |")
 
 
 if __name__ == "__main__":
