@@ -35,6 +35,8 @@ from bitcomm.studies.compare import (
 
 TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
         "--eval-episodes", "50"]  # fmt: skip
+TINY_OPTIONS = "epochs=1, minibatches=1, num_envs=16"
+"""How table.md's title names TINY's learning options (the task's are in the line below it)."""
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 OUTPUTS = ("curves.csv", "curves.png", "curves.svg", "table.md", "summary.json")
 
@@ -128,7 +130,8 @@ def test_study_writes_every_file_well_formed(study: tuple[Path, str]) -> None:
     cut_column = main_table[0].index("length, channel cut at evaluation")
     for row, c in zip(main_table[2:], summary["configurations"], strict=True):
         assert row[cut_column].startswith(f"{c['cut']['mean_episode_length']['mean']:.2f} ± ")
-    assert text.startswith("# bitcomm compare: reinforced recipe, 2 seeds x 64 episodes\n")
+    # the title names the learning options the command set away from the recipe (TINY's), so two studies differ
+    assert text.startswith(f"# bitcomm compare: reinforced recipe ({TINY_OPTIONS}), 2 seeds x 64 episodes\n")
     here = machine_label(machine())
     assert all(r["machines"] == [here] for c in summary["configurations"] for r in c["runs"])
     assert f"Every run ran on one machine ({here})." in text
@@ -198,7 +201,8 @@ def test_report_trains_nothing_and_reports_the_finished_runs(study: tuple[Path, 
     full = strict_json(study[0] / "summary.json")["configurations"][0]  # standard-onehot, both seeds finished
     assert all(summary["configurations"][0][k] == full[k] for k in ("sampled", "greedy", "cut", "reached", "wall_s"))
     text = (out / "table.md").read_text()
-    assert text.startswith("# bitcomm compare: reinforced recipe, 1-2 of 3 seeds x 64 episodes (finished runs)\n")
+    assert text.startswith(f"# bitcomm compare: reinforced recipe ({TINY_OPTIONS}), 1-2 of 3 seeds x 64 episodes "
+                           "(finished runs)\n")  # fmt: skip
     assert "| no-comm | 1 |" in text
 
 

@@ -566,6 +566,14 @@ def study_runs(runs: list[Run], cfg: CompareConfig | EnvCompareConfig, log: Call
     return finished
 
 
+def recipe_phrase(recipe: str, learning: dict[str, Any]) -> str:
+    """The recipe a study ran and the learning options it set away from it ('reinforced recipe
+    (anneal_move_entropy=false, train_max_steps=96)'), so that two studies' tables and figures tell apart what
+    their commands did; bookkeeping a run may change on resume (`RESUMABLE`) is left out."""
+    changed = sorted((k, v) for k, v in learning.items() if k not in RESUMABLE)
+    return f"{recipe} recipe" + (f" ({', '.join(f'{k}={_format(v)}' for k, v in changed)})" if changed else "")
+
+
 def runs_phrase(study: dict[str, Any], configurations: list[dict[str, Any]]) -> str:
     """A table title's count of runs: '5 seeds x 60,000 episodes', or for a report whose configurations have
     finished fewer or different numbers of seeds, '2-5 of 5 seeds x 60,000 episodes (finished runs)'."""
@@ -775,10 +783,10 @@ def plot_curves(
     for ax in axes[len(panels) :]:
         ax.set_visible(False)
     axes[0].legend(fontsize=8)
-    env = cfg.task.env
+    env, recipe = cfg.task.env, recipe_phrase(cfg.recipe, cfg.learning)
+    sep = ",\n" if "(" in recipe else ", "  # the options a study set, on a line of their own
     fig.suptitle(
-        f"{cfg.recipe} recipe, {env.size}x{env.size} grid, K = {cfg.task.channel.bits}: mean and 95% interval over "
-        "seeds",
+        f"{recipe}{sep}{env.size}x{env.size} grid, K = {cfg.task.channel.bits}: mean and 95% interval over seeds",
         fontsize=10,
     )
     save_figure(fig, path)
@@ -861,7 +869,8 @@ def table_markdown(summary: dict[str, Any]) -> str:
               *(f"seconds to {k} oracle" for k in keys), "seconds per run",
               f"rolling length after {study['equal_wall_s']:,.0f} s"]  # fmt: skip
     lines = [
-        f"# bitcomm compare: {study['recipe']} recipe, {runs_phrase(study, summary['configurations'])}",
+        f"# bitcomm compare: {recipe_phrase(study['recipe'], study['learning'])}, "
+        f"{runs_phrase(study, summary['configurations'])}",
         "",
         f"Task: {env['size']}x{env['size']} grid, {env['n_agents']} agents, K = {channel['bits']} bits, delay "
         f"{channel['delay']}, flip {channel['flip_prob']:g}, drop {channel['drop_prob']:g}"
