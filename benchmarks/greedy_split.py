@@ -54,22 +54,21 @@ def cycle_census(
     (None: no repeat within `max_period` steps; the agents' distances are then those of the last step)."""
     from bitcomm.policies.evaluation import play_first_episodes, seeded_episode_envs
 
-    cut, census = 0, Counter[tuple]()
+    cut, census, n = 0, Counter[tuple](), task.env.n_agents
     for _, env in seeded_episode_envs(task, episodes, seed):
-        positions, goals, arriving, moved = [], [], [], []
+        positions, arriving, moved = [], [], []
+        goals = env.observe().state[:, n : 2 * n].reshape(env.num_envs, n, -1).argmax(-1)  # fixed in an episode
         length = np.zeros(env.num_envs, dtype=np.int64)
         for step in play_first_episodes(env, policy):
             after = env.observe()  # the state after this step (the buffers are live)
-            n = task.env.n_agents
             positions.append(after.state[:, :n].reshape(env.num_envs, n, -1).argmax(-1))
-            goals.append(after.state[:, n : 2 * n].reshape(env.num_envs, n, -1).argmax(-1))
             arriving.append(np.packbits(after.received.reshape(env.num_envs, -1), axis=1))
             moved.append(step.moves != 0)
             fin = step.result.finished
             first = step.active[fin.env_index]
             length[fin.env_index[first]] = np.where(fin.success[first], 0, fin.length[first])  # 0: it ended
         pos, msg, mov = np.stack(positions, 1), np.stack(arriving, 1), np.stack(moved, 1)
-        (row, col), (goal_row, goal_col) = np.divmod(pos, task.env.size), np.divmod(np.stack(goals, 1), task.env.size)
+        (row, col), (goal_row, goal_col) = np.divmod(pos, task.env.size), np.divmod(goals[:, None], task.env.size)
         distance = np.abs(row - goal_row) + np.abs(col - goal_col)  # (B, T, n) cells from each agent's goal
         for b in np.flatnonzero(length):
             last = length[b] - 2  # the state after the episode's second-to-last step; the last one resets it
@@ -127,7 +126,7 @@ def print_census(census: Counter[tuple], max_period: int, detail: bool) -> None:
           "its goal along the cycle | episodes |")  # fmt: skip
     print("| --- | --- | --- | --- | --- |")
     for (period, changes, movers, distances), count in sorted(census.items(), key=lambda kv: (-kv[1], str(kv[0]))):
-        where = f"no repeat in {max_period} steps" if period is None else str(period)
+        where = period_class(period, max_period) if period is None else str(period)
         moving = ", ".join(map(str, movers)) or "none"
         cells = ", ".join(str(lo) if lo == hi else f"{lo}-{hi}" for lo, hi in distances)
         print(f"| {where} | {'yes' if changes else 'no'} | {moving if period else '-'} | {cells} | {count} |")
