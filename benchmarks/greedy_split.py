@@ -135,6 +135,7 @@ def print_census(census: Counter[tuple], max_period: int, detail: bool) -> None:
 def main() -> None:
     import torch
 
+    from bitcomm.errors import ConfigError
     from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
     from bitcomm.policies.controller import Controller
 
@@ -151,9 +152,12 @@ def main() -> None:
     if a.max_period < 1:
         ap.error(f"--max-period {a.max_period}: must be >= 1")
     torch.set_num_threads(1)
+    try:  # a missing or damaged run is one line, before anything is played
+        controller = Controller.load(a.run, seed=a.seed)
+    except ConfigError as err:
+        ap.error(str(err))
     if not a.census_only:
         print_split(a.run, a.episodes, a.seed)
-    controller = Controller.load(a.run, seed=a.seed)
     greedy = BatchedPolicy(ControllerAgent(controller, greedy=True))
     cut, census = cycle_census(greedy, controller.task, a.episodes, a.seed, a.max_period)
     print(f"\ngreedy episodes cut at the step limit: {cut} of {a.episodes}")

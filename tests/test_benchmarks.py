@@ -137,6 +137,10 @@ def test_greedy_split_plays_a_run_four_ways(tmp_path: Path) -> None:
     assert alone.returncode == 0, alone.stderr
     head, summary, detail = alone.stdout.split("\n\n")  # the count, the summary, one row per kind of cycle
     assert head.strip().endswith(f"{total[0]} of 20") and counted(summary, 2) == counted(detail, -1) == total[0]
+    missing = subprocess.run([sys.executable, "benchmarks/greedy_split.py", str(tmp_path / "nothing")], cwd=ROOT,
+                             capture_output=True, text=True, env=env, timeout=60)  # fmt: skip
+    assert missing.returncode == 2 and "Traceback" not in missing.stderr and missing.stdout == ""
+    assert "no such file or run folder" in missing.stderr.strip().splitlines()[-1]
 
 
 def _benchmark(name: str) -> Any:
