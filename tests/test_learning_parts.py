@@ -1,5 +1,7 @@
 """Message heads, networks and one learning update: shapes, probabilities and the channel's gradient."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -9,7 +11,9 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import make_train_config
 from bitcomm.learn.learner import Learner
+from bitcomm.learn.move_decay import MoveDecay
 from bitcomm.learn.rollout import Collector
+from bitcomm.learn.run_folder import oracle_level
 from bitcomm.policies.heads import BitwiseHead, OneHotHead, make_head
 from bitcomm.policies.networks import CriticNet, ModelConfig, PolicyNet
 
@@ -192,6 +196,54 @@ def test_entropy_schedules_scale_their_regularisers_by_the_budget_left(schedules
         weights = {t.name: t.weight for t in learner.terms if t.name in base}
         assert weights == pytest.approx({k: w * (1 - progress) if k in decayed else w for k, w in base.items()})
         assert [t.name for t in learner.terms][0] == "policy_gradient"
+
+
+def test_a_move_decay_from_the_protocols_progress_waits_then_ends_with_the_schedule():
+    """`move_decay_below`: whole until the rolling length reaches the threshold, then linear to zero at the
+    schedule's end; without it, the budget's decay from the first episode (the default, unchanged)."""
+    waiting = MoveDecay(threshold=10.0)
+    assert waiting.scale(0.3) == 1.0
+    waiting.watch(None, 0.1)  # before the first batch there is no rolling length
+    waiting.watch(12.0, 0.2)
+    assert waiting.start is None and waiting.scale(0.4) == 1.0
+    waiting.watch(10.0, 0.5)
+    assert waiting.start == 0.5
+    assert [waiting.scale(p) for p in (0.5, 0.75, 1.0)] == pytest.approx([1.0, 0.5, 0.0])
+    waiting.watch(30.0, 0.9)  # a relapse does not restart it
+    assert waiting.start == 0.5
+    from_start = MoveDecay(threshold=None)
+    assert [from_start.scale(p) for p in (0.0, 0.25, 1.0)] == [1.0, 0.75, 0.0]
+
+    task = dataclasses.replace(TINY, channel=ChannelConfig(bits=4))
+    cfg = make_train_config("reinforced", task, num_envs=4, move_decay_below=2.0)
+    learner, collector = Learner(cfg), Collector(task, 4)
+    assert learner.move_decay.threshold == pytest.approx(2.0 * oracle_level(cfg))
+    rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    base = {name: getattr(cfg, name) for name in MOVE_REGULARISERS + MESSAGE_REGULARISERS}
+
+    def weights() -> dict[str, float]:
+        return {t.name: t.weight for t in learner.terms if t.name in base}
+
+    stats = learner.update(rollout, torch.Generator().manual_seed(0), progress=0.5, rolling_length=1e6)
+    assert weights() == pytest.approx(base) and stats["schedule/move_scale"] == 1.0
+    learner.update(rollout, torch.Generator().manual_seed(0), progress=0.6, rolling_length=0.0)
+    learner.update(rollout, torch.Generator().manual_seed(0), progress=0.8, rolling_length=1e6)
+    half = {k: w * 0.5 if k in MOVE_REGULARISERS else w for k, w in base.items()}
+    assert weights() == pytest.approx(half)
+
+
+@pytest.mark.parametrize(
+    "options, match",
+    [
+        (dict(move_decay_below=-1.0), "move-decay-below.*>= 0"),
+        (dict(move_decay_below=2.0, anneal_move_entropy=False), "anneal-move-entropy"),
+        (dict(move_decay_below=2.0, mode="a3c"), "sync mode"),
+        (dict(move_decay_below=2.0), "needs the oracle.*bits"),  # 3 bits cannot name 16 cells: no oracle to measure by
+    ],
+)
+def test_a_move_decay_threshold_is_refused_where_it_could_not_act(options, match):
+    with pytest.raises(ConfigError, match=match):
+        make_train_config("reinforced", TINY, **options)
 
 
 def test_the_default_recipe_decays_its_learning_rates_over_the_budget():

@@ -13,12 +13,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bitcomm.config import TaskConfig
-from bitcomm.errors import bad_value, check_int, check_number, is_number
+from bitcomm.errors import ConfigError, bad_value, check_int, check_number, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
 from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, RECIPES, WIDE_MESSAGES
 from bitcomm.policies.heads import MAX_MARGINAL_BITS, MESSAGE_HEADS, check_marginal_bits
 from bitcomm.policies.networks import ModelConfig
+from bitcomm.policies.reference import OraclePolicy
 
 MODES = ("sync", "a3c")
 BACKENDS = ("local", "ray")
@@ -108,6 +109,11 @@ class TrainConfig:
     """Decay the move entropy bonus and the uniform-move pull (not the message regularisers) linearly to zero on
     `anneal_lr`'s schedule (on in the `reinforced` recipe): greedy moves then follow what sampled moves learned,
     while the message bonuses keep the senders' codes apart to the end (`anneal_entropy` decays those too)."""
+    move_decay_below: float = 0.0
+    """Start the move regularisers' decay (`anneal_move_entropy`, `anneal_entropy`) only once the rolling training
+    episode length is at most this multiple of the oracle's, then decay them linearly to zero by the schedule's end
+    (0: from the first episode). Where the protocol forms late in the budget (32x32), a decay from the start slows
+    it (bitcomm.learn.move_decay); sync mode only, where one learner sees the rolling length."""
     anneal_episodes: int = 0
     """Episodes over which the schedules (`anneal_lr`, `anneal_entropy`, `anneal_move_entropy`) decay (0: the
     budget, `episodes`): a run trained in pieces (each resumed with a larger budget, as benchmarks/solve.py does)
@@ -148,6 +154,22 @@ class TrainConfig:
                 self.anneal_episodes,
                 "acts only with --anneal-lr, --anneal-entropy or --anneal-move-entropy; leave it at 0",
             )
+        check_number("move_decay_below", self.move_decay_below, 0.0)
+        if self.move_decay_below and not (self.anneal_move_entropy or self.anneal_entropy):
+            raise bad_value(
+                "move-decay-below",
+                self.move_decay_below,
+                "acts only with --anneal-move-entropy or --anneal-entropy; leave it at 0",
+            )
+        if self.move_decay_below and self.mode != "sync":
+            raise bad_value("move-decay-below", self.move_decay_below, "acts only in sync mode; leave it at 0")
+        if self.move_decay_below:
+            try:
+                OraclePolicy(self.task)  # the threshold is a multiple of its episode length
+            except ConfigError as e:
+                raise bad_value(
+                    "move-decay-below", self.move_decay_below, f"needs the oracle, which cannot play this task ({e})"
+                ) from None
         if self.staleness and self.backend != "ray":
             raise bad_value("staleness", self.staleness, "acts only on --backend ray; leave it at 0")
         for name in ("workers", "episodes", "num_envs", "epochs", "minibatches", "keep_checkpoints"):

@@ -22,6 +22,7 @@ from bitcomm.learn.beside import start
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
+from bitcomm.learn.move_decay import MoveDecay
 from bitcomm.learn.objectives import Routes, StepBatch, Term, clip_groups, critic_mse, policy_terms
 from bitcomm.learn.precision import update_precision
 from bitcomm.learn.rollout import Rollout
@@ -78,16 +79,16 @@ class Learner:
         self.routes = Routes(self.slot_senders, self.observed, self.slot_goal, task.channel.delay, task.env.size)
         self.codebook = CodeBook(task.env.size**2, self.policy.head) if cfg.code_coef > 0 else None
         self.progress = 0.0  # of the schedules, as of the last update
+        self.move_decay = MoveDecay.from_config(cfg)
         self.helper: ThreadPoolExecutor | None = None  # where the critic steps run (bitcomm.learn.beside)
 
     @property
     def terms(self) -> list[Term]:
         """The objective terms of the policy, from the config (read per step: A3C shares the code book), the
         regularisers scaled down as the budget is played with `anneal_entropy` (all) or `anneal_move_entropy`
-        (the move ones)."""
-        decayed = max(0.0, 1.0 - self.progress)
-        message_scale = decayed if self.cfg.anneal_entropy else 1.0
-        move_scale = decayed if self.cfg.anneal_entropy or self.cfg.anneal_move_entropy else 1.0
+        (the move ones; from where `move_decay` starts)."""
+        message_scale = max(0.0, 1.0 - self.progress) if self.cfg.anneal_entropy else 1.0
+        move_scale = self.move_scale if self.cfg.anneal_entropy or self.cfg.anneal_move_entropy else 1.0
         return policy_terms(self.cfg, self.codebook, message_scale, move_scale)
 
     # ---------------------------------------------------------------- critic
@@ -187,11 +188,24 @@ class Learner:
         return BatchFeatures(policy, critic)
 
     # ---------------------------------------------------------------- update
-    def update(self, ro: Rollout, generator: torch.Generator | None = None, progress: float = 0.0) -> dict[str, float]:
+    @property
+    def move_scale(self) -> float:
+        """The move regularisers' weight under their decay, as of the last update."""
+        return self.move_decay.scale(self.progress)
+
+    def update(
+        self,
+        ro: Rollout,
+        generator: torch.Generator | None = None,
+        progress: float = 0.0,
+        rolling_length: float | None = None,
+    ) -> dict[str, float]:
         """One update on the batch `ro`; `progress` is the fraction of the budget played so far (`anneal_lr`,
-        `anneal_entropy`, `anneal_move_entropy`)."""
+        `anneal_entropy`, `anneal_move_entropy`), `rolling_length` the rolling mean training episode length before
+        this batch (`move_decay_below`)."""
         cfg = self.cfg
         self.progress = progress
+        self.move_decay.watch(rolling_length, progress)
         if cfg.anneal_lr:
             for opt, bases in zip((self.opt_policy, self.opt_critic), self.base_lrs, strict=True):
                 for group, base in zip(opt.param_groups, bases, strict=True):
@@ -207,6 +221,8 @@ class Learner:
                 step_stats, clip_scales = self._step(ro, adv, cols, clip_scales, features)
                 for k, v in step_stats.items():
                     stats.setdefault(k, []).append(v)
+        if cfg.move_decay_below:
+            stats["schedule/move_scale"] = [self.move_scale]
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
     def advantages(self, ro: Rollout, features: BatchFeatures | None = None) -> Advantages:

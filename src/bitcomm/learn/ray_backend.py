@@ -255,7 +255,9 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
         nonlocal version, weights, last_save
         ro = join([b["rollout"] for b in batches])
         t0 = time.perf_counter()
-        stats = learner.update(ro, generator, progress=cfg.schedule_progress(prog.episodes))
+        stats = learner.update(
+            ro, generator, progress=cfg.schedule_progress(prog.episodes), rolling_length=prog.rolling_length
+        )
         finite_or_stop(out, learner, prog.episodes + len(ro.length))
         version += 1
         weights = ray.put(_policy_weights(learner.policy))  # once per update, whatever the number of actors

@@ -91,7 +91,9 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
         seed = np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,))
         ro = collector.collect(learner.policy, seed, generator)
         # update
-        stats = learner.update(ro, generator, progress=cfg.schedule_progress(prog.episodes))
+        stats = learner.update(
+            ro, generator, progress=cfg.schedule_progress(prog.episodes), rolling_length=prog.rolling_length
+        )
         finite_or_stop(out, learner, prog.episodes + len(ro.length))
         prog.wall_s += time.perf_counter() - t0
         row = prog.add_batch(ro.length, ro.team_return, int(ro.length.sum()) * n)

@@ -329,9 +329,14 @@ class Progress:
             "agent_steps": self.agent_steps,
             "wall_s": round(self.wall_s, 3),
             "charts/episode_length": float(np.mean(length)),
-            "charts/episode_length_rolling": float(np.mean(self.recent)),
+            "charts/episode_length_rolling": self.rolling_length,
             "charts/team_return": float(np.mean(team_return)),
         }
+
+    @property
+    def rolling_length(self) -> float | None:
+        """The rolling mean episode length (None before the first batch)."""
+        return float(np.mean(self.recent)) if self.recent else None
 
     def state(self) -> dict[str, Any]:
         return {
@@ -358,6 +363,9 @@ def learner_state(learner: Any, generator: torch.Generator | None = None) -> dic
     if generator is not None:
         state["generator"] = generator.get_state()
     state["torch_rng"] = torch.get_rng_state()
+    move_decay = getattr(learner, "move_decay", None)  # the grid learner's, where it waits for the protocol
+    if move_decay is not None and move_decay.threshold is not None and move_decay.start is not None:
+        state["move_decay_start"] = move_decay.start
     return state
 
 
@@ -374,6 +382,8 @@ def restore_learner(learner: Any, saved: dict[str, Any]) -> None:
         getattr(learner, name).load_state_dict(sd)
     learner.opt_policy.load_state_dict(saved["opt_policy"])
     learner.opt_critic.load_state_dict(saved["opt_critic"])
+    if "move_decay_start" in saved:
+        learner.move_decay.start = float(saved["move_decay_start"])
 
 
 def resume_config(out: Path, episodes: int | None = None) -> TrainConfig:
