@@ -68,6 +68,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
     # learning options: 0 turns a loss term or trick off; a huge value is allowed where it means "never"/"all"
     (ALL, "--train-max-steps"): {"0", "1000000000000"},
     (ALL, "--anneal-episodes"): {"0", "1000000000000"},  # 0: the schedule follows the budget; huge: barely decays
+    (ALL, "--move-decay-below"): {"0", "1e300"},  # 0: the decay from the first episode; huge: from the second batch
     (ALL, "--staleness"): {"0"},  # 0: synchronous  # 0 or beyond max_steps: the task's own limit
     (ALL, "--keep-checkpoints"): {"1000000000000"},  # keep them all
     (ALL, "--conv-stride"): {"1000000000000"},  # every layer down to one cell

@@ -113,7 +113,8 @@ class TrainConfig:
     """Start the move regularisers' decay (`anneal_move_entropy`, `anneal_entropy`) only once the rolling training
     episode length is at most this multiple of the oracle's, then decay them linearly to zero by the schedule's end
     (0: from the first episode). Where the protocol forms late in the budget (32x32), a decay from the start slows
-    it (bitcomm.learn.move_decay); sync mode only, where one learner sees the rolling length."""
+    it; at 10x10 the decay from the start is the better one (docs/tuning.md session 23). Sync mode only, where one
+    learner sees the rolling length."""
     anneal_episodes: int = 0
     """Episodes over which the schedules (`anneal_lr`, `anneal_entropy`, `anneal_move_entropy`) decay (0: the
     budget, `episodes`): a run trained in pieces (each resumed with a larger budget, as benchmarks/solve.py does)
