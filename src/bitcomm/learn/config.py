@@ -156,21 +156,8 @@ class TrainConfig:
                 "acts only with --anneal-lr, --anneal-entropy or --anneal-move-entropy; leave it at 0",
             )
         check_number("move_decay_below", self.move_decay_below, 0.0)
-        if self.move_decay_below and not (self.anneal_move_entropy or self.anneal_entropy):
-            raise bad_value(
-                "move-decay-below",
-                self.move_decay_below,
-                "acts only with --anneal-move-entropy or --anneal-entropy; leave it at 0",
-            )
-        if self.move_decay_below and self.mode != "sync":
-            raise bad_value("move-decay-below", self.move_decay_below, "acts only in sync mode; leave it at 0")
         if self.move_decay_below:
-            try:
-                OraclePolicy(self.task)  # the threshold is a multiple of its episode length
-            except ConfigError as e:
-                raise bad_value(
-                    "move-decay-below", self.move_decay_below, f"needs the oracle, which cannot play this task ({e})"
-                ) from None
+            self._check_move_decay_below()
         if self.staleness and self.backend != "ray":
             raise bad_value("staleness", self.staleness, "acts only on --backend ray; leave it at 0")
         for name in ("workers", "episodes", "num_envs", "epochs", "minibatches", "keep_checkpoints"):
@@ -204,6 +191,20 @@ class TrainConfig:
                 self.channel_noise,
                 "acts only where the goal loss reaches the sender (goal-coef > 0 with --no-message-map); leave it at 1",
             )
+
+    def _check_move_decay_below(self) -> None:
+        """`move_decay_below` set: it needs a move decay to start, the sync trainer's rolling length, and the oracle."""
+        value = self.move_decay_below
+        if not (self.anneal_move_entropy or self.anneal_entropy):
+            raise bad_value(
+                "move-decay-below", value, "acts only with --anneal-move-entropy or --anneal-entropy; leave it at 0"
+            )
+        if self.mode != "sync":
+            raise bad_value("move-decay-below", value, "acts only in sync mode; leave it at 0")
+        try:
+            OraclePolicy(self.task)  # the threshold is a multiple of its episode length
+        except ConfigError as e:
+            raise bad_value("move-decay-below", value, f"needs the oracle, which cannot play this task ({e})") from None
 
     @property
     def training_task(self) -> TaskConfig:
