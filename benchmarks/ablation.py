@@ -16,10 +16,15 @@ stopped ablation rerun with the same flags skips finished rows.
 A row whose options decay the learning rates (`anneal_lr`) needs `--max-episodes N`: its schedule's horizon and
 its episode budget (a row that does not anneal trains for `--minutes` only, as before).
 
+Rows stopped by the clock play different numbers of episodes (a slow row, or a slow moment of a shared machine,
+plays fewer), so `--marks 20000,40000,60000` adds a column that reads every row's rolling training length at those
+episodes (interpolated between logged batches, as `bitcomm compare` reads its curves; "—" past a row's last):
+the rows at equal episodes, where their schedules stand at the same point.
+
     python benchmarks/ablation.py --size 4 --bits 4 --minutes 1 --max-episodes 30000   # from paper, each fix on
     python benchmarks/ablation.py --base reinforced --target paper --size 4 --bits 4 --minutes 1 --max-episodes 30000
     python benchmarks/ablation.py --base reinforced --target paper --size 10 --bits 7 --minutes 5 \
-        --max-episodes 100000 --chunk 8192                                         # the paper's task (results 4d)
+        --max-episodes 75000 --chunk 4096 --threads 1 --marks 20000,40000,60000     # the paper's task (results 4d)
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bitcomm.studies.compare import read_curve, rolling_at_episodes  # noqa: E402
 from solve import solve_seed  # noqa: E402  (benchmarks/ is not a package)
 
 GROUPS: dict[str, tuple[str, ...]] = {"ppo_reuse": ("epochs", "minibatches", "clip")}
@@ -68,21 +74,34 @@ def _cell(reached: dict[str, Any] | None) -> str:
     return f"{reached['episodes']:,} ep / {reached['wall_s']:.0f} s" if reached else "not reached"
 
 
+def rolling_cell(run: Path, marks: list[int]) -> str:
+    """The run's rolling training length at each of `marks` episodes, "—" past its last logged batch."""
+    if not (run / "metrics.csv").is_file():
+        return " / ".join("—" for _ in marks)
+    curve = read_curve(run)
+    return " / ".join(
+        f"{rolling_at_episodes(curve, m, 'length_rolling'):.2f}" if m <= curve.episodes[-1] else "—" for m in marks
+    )
+
+
 def table(results: list[tuple[str, dict[str, Any], dict[str, Any]]], a: argparse.Namespace) -> str:
+    marks = f" | rolling at {' / '.join(f'{m:,}' for m in a.marks)} episodes" if a.marks else ""
     lines = [
         f"{a.size}x{a.size} grid, K = {a.bits}, improved + bitwise, seed {a.seed}, {a.minutes:g} min of training per "
         f"row; from `{a.base}`, one change toward `{a.target}` per row (oracle "
         f"{results[0][2]['oracle']:.2f} on the evaluation episodes).",
         "",
-        "| row | change | 2x oracle | 1.15x oracle | final sampled | final greedy | episodes played |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        f"| row | change | 2x oracle | 1.15x oracle | final sampled | final greedy | episodes played{marks} |",
+        "| --- | --- | --- | --- | --- | --- | ---" + (" | ---" if a.marks else "") + " |",
     ]
     for name, change, r in results:
         shown = ", ".join(f"{k}={v}" for k, v in change.items()) if name not in (a.base, a.target) else "—"
         lines.append(
             f"| {name} | {shown} | {_cell(r['reached']['2x'])} | {_cell(r['reached']['1.15x'])} | "
             f"{r['final_eval']['sampled']:.2f} | {r['final_eval']['greedy']:.2f} | {r['episodes']:,}"
-            f"{' (then diverged)' if r.get('diverged') else ''} |"
+            f"{' (then diverged)' if r.get('diverged') else ''}"
+            + (f" | {rolling_cell(a.out / name / f'seed{a.seed}', a.marks)}" if a.marks else "")
+            + " |"
         )
     return "\n".join(lines)
 
@@ -104,6 +123,7 @@ def main() -> None:
         "--max-episodes", type=int, default=None, help="horizon and episode budget of a row that anneals its rates"
     )
     ap.add_argument("--out", type=Path, default=None, help="default runs/ablation/<base>-to-<target>-<size>x<size>")
+    ap.add_argument("--marks", default="", help="comma-separated episodes at which to read every row's rolling length")
     a = ap.parse_args()
     if a.base == a.target:
         ap.error(f"--target {a.target!r}: must differ from --base")
@@ -111,7 +131,13 @@ def main() -> None:
         ap.error("--minutes must be > 0; --chunk, --threads, --bits >= 1; --size >= 2")
     if a.max_episodes is not None and a.max_episodes < 1:
         ap.error(f"--max-episodes {a.max_episodes}: must be >= 1")
-    out = a.out or Path("runs/ablation") / f"{a.base}-to-{a.target}-{a.size}x{a.size}"
+    try:
+        a.marks = [int(m) for m in a.marks.split(",")] if a.marks else []
+    except ValueError:
+        ap.error(f"--marks {a.marks!r}: must be comma-separated whole numbers of episodes, e.g. 20000,40000")
+    if any(m < 1 for m in a.marks):
+        ap.error(f"--marks {a.marks}: each must be >= 1")
+    out = a.out = a.out or Path("runs/ablation") / f"{a.base}-to-{a.target}-{a.size}x{a.size}"
     plan = rows(a.base, a.target)
     if a.only:
         names = {n for n, _ in plan}

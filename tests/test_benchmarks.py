@@ -84,6 +84,14 @@ def test_ablation_runs_a_row_and_resumes_from_its_result(tmp_path: Path) -> None
     assert "| mode | mode=sync |" in first.stdout and (tmp_path / "mode" / "result.json").is_file()
     again = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
     assert again.stdout == first.stdout  # the kept result, not a new run
+    marked = subprocess.run([*argv, "--marks", "16,1000000"], cwd=ROOT, capture_output=True, text=True, env=env,
+                            timeout=300)  # fmt: skip
+    row = next(line for line in marked.stdout.splitlines() if line.startswith("| mode |"))
+    assert "rolling at 16 / 1,000,000 episodes |" in marked.stdout and row.endswith(" / — |"), marked.stdout
+    assert float(row.split("|")[-2].split("/")[0]) > 0  # read from the row's metrics.csv at 16 episodes
+    for bad_marks in ("16,x", "0"):
+        refused = subprocess.run([*argv, "--marks", bad_marks], cwd=ROOT, capture_output=True, text=True, timeout=60)
+        assert refused.returncode == 2 and "--marks" in refused.stderr.strip().splitlines()[-1]
     bad = subprocess.run([*argv[:-2], "--only", "nosuch"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "nosuch" in bad.stderr.strip().splitlines()[-1]
 
