@@ -13,6 +13,7 @@ from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.policies.agent_policies import OracleAgent, RandomAgent
 from bitcomm.studies.analysis import (
+    MessageSamples,
     analyze_samples,
     bit_maps,
     channel_capacity,
@@ -20,6 +21,7 @@ from bitcomm.studies.analysis import (
     entropy,
     fit_lookup_decoder,
     mutual_information,
+    split_by_episode,
 )
 
 
@@ -62,6 +64,32 @@ def test_noise_lowers_what_gets_through_and_random_says_nothing() -> None:
     tiny = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
     r = analyze_samples(collect_messages(RandomAgent(tiny, 0), tiny, 20_000, 256, seed=3), tiny)
     assert r.transmitted_bits < 0.1 and max(b.mi_cell for b in r.per_bit) < 0.02
+
+
+def test_the_decoder_is_scored_on_episodes_it_never_saw() -> None:
+    """A sender that repeats a random pattern within each episode, whatever the goal, says nothing about the
+    goal: a decoder that saw other deliveries of the same episode would remember the pattern and score high."""
+    rng = np.random.default_rng(0)
+    task = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=16))
+    episodes, repeats = 4_000, 8
+    goal = np.repeat(rng.integers(0, 16, episodes), repeats)
+    bits = np.repeat(rng.integers(0, 2, (episodes, 16)), repeats, axis=0).astype(np.uint8)
+    key = np.repeat(np.arange(episodes), repeats)
+    r = analyze_samples(MessageSamples(goal, bits, goal, bits, key), task)
+    assert r.decoder_accuracy < 0.1  # chance is 1/16; split by delivery it is about 0.96
+    by_delivery = analyze_samples(MessageSamples(goal, bits, goal, bits), task)
+    assert by_delivery.decoder_accuracy > 0.8
+    fit, test = split_by_episode(key, seed=0)
+    assert set(key[fit]).isdisjoint(key[test]) and len(fit) + len(test) == len(key)
+    assert abs(len(fit) - len(test)) <= repeats
+
+
+def test_collected_deliveries_carry_their_episode() -> None:
+    task = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4, delay=2))
+    samples = collect_messages(OracleAgent(task), task, 5_000, 64, seed=5)
+    assert samples.delivered_episode is not None and len(samples.delivered_episode) == len(samples.delivered_goal)
+    for key in np.unique(samples.delivered_episode)[:50]:  # one goal per episode and sender
+        assert np.unique(samples.delivered_goal[samples.delivered_episode == key]).size <= task.env.n_agents
 
 
 def test_delay_pairs_each_delivery_with_its_own_message() -> None:

@@ -13,9 +13,11 @@ transmitted figure (an order of magnitude: a deterministic code has far less).
 - I(goal; received message): the information that actually reaches the recipient, in bits, to be read
   against the channel's capacity K (1 - H(flip_prob)) and against H(goal) (log2(size^2) when goals
   are uniform). The oracle sends the cell index, so without noise it transmits all of H(goal).
-- A lookup decoder (most frequent goal per received bit pattern) is fitted on one half of the
-  deliveries and scored on the other: its accuracy, and I(goal; decoded goal) on the held-out half,
-  an estimate with no fitting bias.
+- A lookup decoder (most frequent goal per received bit pattern) is fitted on the deliveries of half
+  the episodes and scored on the other half's: its accuracy, and I(goal; decoded goal) on the held-out
+  half, an estimate with no fitting bias. The halves split episodes, not deliveries, because a sender
+  repeats itself within an episode: a pattern seen in both halves of one episode would be remembered,
+  not decoded.
 The goal a message is scored against is its *sender's observed goal*: in the paper's task that is the
 recipient's own goal, the one thing it needs to hear.
 """
@@ -42,6 +44,7 @@ class MessageSamples(NamedTuple):
     sent_bits: np.ndarray  # (M, K) what it sent
     delivered_goal: np.ndarray  # (D,) sender's observed goal, one row per message x recipient
     received_bits: np.ndarray  # (D, K) what that recipient read (after flips and drops)
+    delivered_episode: np.ndarray | None = None  # (D,) a key per episode (None: each delivery its own)
 
 
 def collect_messages(
@@ -55,7 +58,7 @@ def collect_messages(
     slot_sender = task.slot_senders[receivers, slots]
     per_step = num_envs * receivers.size
     steps = d + math.ceil(samples / per_step)
-    sent_goal, sent_bits, deliv_goal, recv_bits = [], [], [], []
+    sent_goal, sent_bits, deliv_goal, recv_bits, deliv_episode = [], [], [], [], []
     ring_goal = np.zeros((d, num_envs, n), dtype=np.int64)  # goals seen by the senders of messages in flight
     ring_episode = np.full((d, num_envs), -1, dtype=np.int64)
     episode = np.zeros(num_envs, dtype=np.int64)  # episodes finished per slot: tells a reset happened
@@ -66,6 +69,7 @@ def collect_messages(
         if same.any():
             deliv_goal.append(ring_goal[k][same][:, slot_sender].ravel())
             recv_bits.append(obs.received[same][:, receivers, slots].reshape(-1, task.channel.bits))
+            deliv_episode.append(np.repeat(np.flatnonzero(same) * (steps + 1) + episode[same], receivers.size))
         seen = obs.planes[:, :, 1].reshape(num_envs, n, C).argmax(-1)
         moves, bits = act(obs)
         sent_goal.append(seen.ravel())
@@ -75,7 +79,7 @@ def collect_messages(
         episode[result.finished.env_index] += 1
     return MessageSamples(
         np.concatenate(sent_goal), np.concatenate(sent_bits).astype(np.uint8),
-        np.concatenate(deliv_goal), np.concatenate(recv_bits).astype(np.uint8),
+        np.concatenate(deliv_goal), np.concatenate(recv_bits).astype(np.uint8), np.concatenate(deliv_episode),
     )  # fmt: skip
 
 
@@ -115,6 +119,14 @@ def fit_lookup_decoder(patterns: np.ndarray, goals: np.ndarray) -> tuple[dict[in
     table = {int(p): int(g) for p, g in pairs[first]}
     values, freq = np.unique(goals, return_counts=True)
     return table, int(values[freq.argmax()])
+
+
+def split_by_episode(episodes: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the deliveries of a random half of the episodes (to fit on), and of the rest (to score on)."""
+    keys, group = np.unique(episodes, return_inverse=True)
+    held_out = np.zeros(keys.size, dtype=bool)
+    held_out[np.random.default_rng(seed).permutation(keys.size)[keys.size // 2 :]] = True
+    return np.flatnonzero(~held_out[group]), np.flatnonzero(held_out[group])
 
 
 def decode(table: dict[int, int], default: int, patterns: np.ndarray) -> np.ndarray:
@@ -170,8 +182,8 @@ def analyze_samples(samples: MessageSamples, task: TaskConfig, policy: str = "",
     )
     dgoal, received = samples.delivered_goal, bits_to_index(samples.received_bits)
     D = len(dgoal)
-    perm = np.random.default_rng(seed).permutation(D)
-    fit, test = perm[: D // 2], perm[D // 2 :]
+    episodes = samples.delivered_episode if samples.delivered_episode is not None else np.arange(D)
+    fit, test = split_by_episode(episodes, seed)
     table, default = fit_lookup_decoder(received[fit], dgoal[fit])
     decoded = decode(table, default, received[test])
     n_goals, n_patterns = np.unique(dgoal).size, np.unique(received).size
@@ -250,7 +262,7 @@ def markdown_summary(report: ProtocolReport, heatmap_name: str | None = None) ->
         f"| channel capacity K(1 - H(flip_prob)) | {r.capacity_bits:.3f} |",
         f"| I(goal; decoded goal), held out | {r.decoded_bits:.3f} |",
         "",
-        f"Lookup decoder (most frequent goal per received pattern, fitted on half, scored on the other): "
+        f"Lookup decoder (most frequent goal per received pattern, fitted on half the episodes, scored on the rest): "
         f"accuracy {r.decoder_accuracy:.3f} (always guessing the most frequent goal: {r.decoder_chance:.3f}).",
         "",
         "| bit | P(bit=1) | I(bit; goal row) | I(bit; goal column) | I(bit; goal cell) |",
