@@ -79,6 +79,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
             "entropy-move",
             "entropy-message",
             "entropy-message-marginal",
+            "sharpen-messages",
             "uniform-move",
             "clip",
             "goal-coef",

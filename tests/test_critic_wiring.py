@@ -122,15 +122,19 @@ def test_the_probe_tells_the_wrong_wirings_apart() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ SPEC section 7
-ENTROPY_TYPE = ("entropy_move", "entropy_message", "entropy_message_marginal", "uniform_move")
+ENTROPY_TYPE = ("entropy_move", "entropy_message", "entropy_message_marginal", "sharpen_messages", "uniform_move")
 """The learning options that weight an entropy-type term (`bitcomm.learn.objectives`)."""
 
 
-def policy_gradients_after_one_step(recipe: str, zero_advantages: bool, **weights: float) -> dict[str, torch.Tensor]:
-    """The policy's gradient of one update step, with every entropy-type weight at zero but `weights`."""
+def policy_gradients_after_one_step(
+    recipe: str, zero_advantages: bool, progress: float = 0.0, **weights: float
+) -> dict[str, torch.Tensor]:
+    """The policy's gradient of one update step at `progress` of the schedules, with every entropy-type weight at
+    zero but `weights`."""
     torch.manual_seed(0)
     cfg = make_train_config(recipe, TWO, num_envs=8, **{**dict.fromkeys(ENTROPY_TYPE, 0.0), **weights})
     learner = Learner(cfg)
+    learner.progress = progress
     ro = Collector(TWO, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     adv = learner.advantages(ro)
     if zero_advantages:
@@ -158,6 +162,15 @@ def test_the_marginal_message_entropy_reaches_the_message_head_alone() -> None:
     assert grads["message_logits.weight"].abs().sum() > 0
     assert torch.count_nonzero(grads["move_logits.weight"]) == 0
     assert make_train_config("reinforced", entropy_message_marginal=0.1).pure
+
+
+def test_message_sharpening_reaches_the_message_head_alone() -> None:
+    """The late per-message entropy penalty (`sharpen_messages`) is an entropy term too: at the schedule's end,
+    without advantages, it moves the message head and leaves the movement head still; the recipe stays pure."""
+    grads = policy_gradients_after_one_step("reinforced", zero_advantages=True, sharpen_messages=0.03, progress=1.0)
+    assert grads["message_logits.weight"].abs().sum() > 0
+    assert torch.count_nonzero(grads["move_logits.weight"]) == 0
+    assert make_train_config("reinforced", sharpen_messages=0.03).pure
 
 
 def test_the_supervised_recipe_reaches_the_message_head_without_advantages() -> None:

@@ -198,6 +198,24 @@ def test_entropy_schedules_scale_their_regularisers_by_the_budget_left(schedules
         assert [t.name for t in learner.terms][0] == "policy_gradient"
 
 
+def test_sharpening_turns_the_message_entropy_bonus_into_a_penalty_along_the_schedule():
+    """`sharpen_messages` w: each message's entropy weight is `entropy_message - w * progress`, a bonus at the
+    start and a penalty by the schedule's end; every other term keeps its weight."""
+    sharpened, plain = (
+        Learner(make_train_config("reinforced", TINY, num_envs=4, mode="sync", entropy_message=0.01, **extra))
+        for extra in (dict(sharpen_messages=0.03), {})
+    )
+    rollout = Collector(TINY, 4).collect(plain.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    for progress in (0.0, 0.25, 1.0):
+        weights = []
+        for learner in (sharpened, plain):
+            learner.update(rollout, torch.Generator().manual_seed(0), progress=progress)
+            weights.append({t.name: t.weight for t in learner.terms if hasattr(t, "weight")})
+        assert weights[0].pop("entropy_message") == pytest.approx(0.01 - 0.03 * progress)
+        assert weights[1].pop("entropy_message") == pytest.approx(0.01)
+        assert weights[0] == pytest.approx(weights[1])
+
+
 def test_a_move_decay_from_the_protocols_progress_waits_then_ends_with_the_schedule():
     """`move_decay_below`: whole until the rolling length reaches the threshold, then linear to zero at the
     schedule's end; without it, the budget's decay from the first episode (the default, unchanged)."""

@@ -109,6 +109,12 @@ class TrainConfig:
     """Decay the move entropy bonus and the uniform-move pull (not the message regularisers) linearly to zero on
     `anneal_lr`'s schedule (on in the `reinforced` recipe): greedy moves then follow what sampled moves learned,
     while the message bonuses keep the senders' codes apart to the end (`anneal_entropy` decays those too)."""
+    sharpen_messages: float = 0.0
+    """A per-message entropy penalty that grows with the schedule: the per-message entropy weight goes linearly
+    from `entropy_message` at the start to `entropy_message - sharpen_messages` at the schedule's end (off: 0).
+    Each sender's most likely bits then become the bits it sends, so the codes greedy play sends are the codes
+    sampled play was trained on; an entropy term of the sender's own distribution, so a run stays pure
+    (docs/tuning.md session 27)."""
     move_decay_below: float = 0.0
     """Start the move regularisers' decay (`anneal_move_entropy`, `anneal_entropy`) only once the rolling training
     episode length is at most this multiple of the oracle's, then decay them linearly to zero by the schedule's end
@@ -172,6 +178,7 @@ class TrainConfig:
             "entropy_move",
             "entropy_message",
             "entropy_message_marginal",
+            "sharpen_messages",
             "uniform_move",
             "clip",
             "goal_coef",

@@ -86,10 +86,10 @@ class Learner:
     def terms(self) -> list[Term]:
         """The objective terms of the policy, from the config (read per step: A3C shares the code book), the
         regularisers scaled down as the budget is played with `anneal_entropy` (all) or `anneal_move_entropy`
-        (the move ones; from where `move_decay` starts)."""
+        (the move ones; from where `move_decay` starts), each message's entropy penalised with `sharpen_messages`."""
         message_scale = max(0.0, 1.0 - self.progress) if self.cfg.anneal_entropy else 1.0
         move_scale = self.move_scale if self.cfg.anneal_entropy or self.cfg.anneal_move_entropy else 1.0
-        return policy_terms(self.cfg, self.codebook, message_scale, move_scale)
+        return policy_terms(self.cfg, self.codebook, message_scale, move_scale, self.progress)
 
     # ---------------------------------------------------------------- critic
     def critic_values(

@@ -330,16 +330,20 @@ class CodeTerm:
 
 # ------------------------------------------------------------------------------------------------ recipe
 def policy_terms(
-    cfg: TrainConfig, codebook: CodeBook | None, message_scale: float = 1.0, move_scale: float = 1.0
+    cfg: TrainConfig,
+    codebook: CodeBook | None,
+    message_scale: float = 1.0,
+    move_scale: float = 1.0,
+    progress: float = 0.0,
 ) -> list[Term]:
     """The terms `cfg` asks for, in the order they are evaluated: the reinforcement terms (the entropy
     bonuses always, for their figures; the message bonuses weighted by `message_scale` times the config's
-    weight, the move bonus and the uniform-move pull by `move_scale`), then each auxiliary term whose weight
-    is positive."""
+    weight, less `sharpen_messages` times the schedule's `progress` for each message's entropy; the move bonus
+    and the uniform-move pull by `move_scale`), then each auxiliary term whose weight is positive."""
     terms: list[Term] = [
         PolicyGradient(cfg.clip),
         Entropy("move", cfg.entropy_move * move_scale),
-        Entropy("message", cfg.entropy_message * message_scale),
+        Entropy("message", cfg.entropy_message * message_scale - cfg.sharpen_messages * progress),
     ]
     if cfg.entropy_message_marginal > 0:
         terms.append(MarginalMessageEntropy(cfg.entropy_message_marginal * message_scale))
