@@ -112,9 +112,10 @@ class TrainConfig:
     sharpen_messages: float = 0.0
     """A per-message entropy penalty that grows with the schedule: the per-message entropy weight goes linearly
     from `entropy_message` at the start to `entropy_message - sharpen_messages` at the schedule's end (off: 0).
-    Each sender's most likely bits then become the bits it sends, so the codes greedy play sends are the codes
-    sampled play was trained on; an entropy term of the sender's own distribution, so a run stays pure
-    (docs/tuning.md session 27)."""
+    Each sender's most likely message then becomes the message it sends, so the codes greedy play sends are the
+    codes sampled play was trained on; an entropy term of the sender's own distribution, so a run stays pure. On the
+    paper's task (0.03) it moved greedy play's failures between seeds rather than removing them (docs/tuning.md
+    session 27), so it is off by default."""
     move_decay_below: float = 0.0
     """Start the move regularisers' decay (`anneal_move_entropy`, `anneal_entropy`) only once the rolling training
     episode length is at most this multiple of the oracle's, then decay them linearly to zero by the schedule's end
