@@ -80,6 +80,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
             "entropy-message",
             "entropy-message-marginal",
             "sharpen-messages",
+            "sharpen-moves",
             "uniform-move",
             "clip",
             "goal-coef",

@@ -16,7 +16,7 @@ from torch import nn
 
 from bitcomm.channel.core import bits_to_index
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.learn.config import make_train_config
+from bitcomm.learn.config import ENTROPY_WEIGHTS, make_train_config
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
 from bitcomm.learn.learner import Learner
 from bitcomm.learn.rollout import Collector, Rollout
@@ -122,8 +122,6 @@ def test_the_probe_tells_the_wrong_wirings_apart() -> None:
 
 
 # ------------------------------------------------------------------------------------------------ SPEC section 7
-ENTROPY_TYPE = ("entropy_move", "entropy_message", "entropy_message_marginal", "sharpen_messages", "uniform_move")
-"""The learning options that weight an entropy-type term (`bitcomm.learn.objectives`)."""
 
 
 def policy_gradients_after_one_step(
@@ -132,7 +130,7 @@ def policy_gradients_after_one_step(
     """The policy's gradient of one update step at `progress` of the schedules, with every entropy-type weight at
     zero but `weights`."""
     torch.manual_seed(0)
-    cfg = make_train_config(recipe, TWO, num_envs=8, **{**dict.fromkeys(ENTROPY_TYPE, 0.0), **weights})
+    cfg = make_train_config(recipe, TWO, num_envs=8, **{**dict.fromkeys(ENTROPY_WEIGHTS, 0.0), **weights})
     learner = Learner(cfg)
     learner.progress = progress
     ro = Collector(TWO, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
@@ -164,13 +162,30 @@ def test_the_marginal_message_entropy_reaches_the_message_head_alone() -> None:
     assert make_train_config("reinforced", entropy_message_marginal=0.1).pure
 
 
-def test_message_sharpening_reaches_the_message_head_alone() -> None:
-    """The late per-message entropy penalty (`sharpen_messages`) is an entropy term too: at the schedule's end,
-    without advantages, it moves the message head and leaves the movement head still; the recipe stays pure."""
-    grads = policy_gradients_after_one_step("reinforced", zero_advantages=True, sharpen_messages=0.03, progress=1.0)
-    assert grads["message_logits.weight"].abs().sum() > 0
-    assert torch.count_nonzero(grads["move_logits.weight"]) == 0
-    assert make_train_config("reinforced", sharpen_messages=0.03).pure
+@pytest.mark.parametrize(
+    ("option", "head", "other"),
+    [
+        ("sharpen_messages", "message_logits.weight", "move_logits.weight"),
+        ("sharpen_moves", "move_logits.weight", "message_logits.weight"),
+    ],
+)
+def test_sharpening_reaches_its_own_head_alone(option: str, head: str, other: str) -> None:
+    """The late entropy penalties (`sharpen_messages`, `sharpen_moves`) are entropy terms too: at the schedule's
+    end, without advantages, each moves its own head and leaves the other still; the recipe stays pure."""
+    grads = policy_gradients_after_one_step("reinforced", zero_advantages=True, progress=1.0, **{option: 0.03})
+    assert grads[head].abs().sum() > 0
+    assert torch.count_nonzero(grads[other]) == 0
+    assert make_train_config("reinforced", **{option: 0.03}).pure
+
+
+def test_a_message_head_of_its_own_is_taught_by_the_estimators_alone() -> None:
+    """`message_reads="observed"` gives the message head layers of its own: pure as the default, they move
+    only with advantages, and then they do."""
+    silent = policy_gradients_after_one_step("reinforced", zero_advantages=True, message_reads="observed")
+    assert all(torch.count_nonzero(g) == 0 for g in silent.values()), [n for n, g in silent.items() if g.any()]
+    moved = policy_gradients_after_one_step("reinforced", zero_advantages=False, message_reads="observed")
+    assert moved["message_trunk.0.weight"].abs().sum() > 0 and moved["message_logits.weight"].abs().sum() > 0
+    assert make_train_config("reinforced", message_reads="observed").pure
 
 
 def test_the_supervised_recipe_reaches_the_message_head_without_advantages() -> None:

@@ -198,12 +198,19 @@ def test_entropy_schedules_scale_their_regularisers_by_the_budget_left(schedules
         assert [t.name for t in learner.terms][0] == "policy_gradient"
 
 
-def test_sharpening_turns_the_message_entropy_bonus_into_a_penalty_along_the_schedule():
-    """`sharpen_messages` w: each message's entropy weight is `entropy_message - w * progress`, a bonus at the
-    start and a penalty by the schedule's end; every other term keeps its weight."""
+@pytest.mark.parametrize(
+    ("option", "term"), [("sharpen_messages", "entropy_message"), ("sharpen_moves", "entropy_move")]
+)
+def test_sharpening_turns_an_entropy_bonus_into_a_penalty_along_the_schedule(option: str, term: str):
+    """`sharpen_messages` / `sharpen_moves` w: that head's entropy weight is its bonus less `w * progress`, a
+    bonus at the start and a penalty by the schedule's end; every other term keeps its weight."""
     sharpened, plain = (
-        Learner(make_train_config("reinforced", TINY, num_envs=4, mode="sync", entropy_message=0.01, **extra))
-        for extra in (dict(sharpen_messages=0.03), {})
+        Learner(
+            make_train_config(
+                "reinforced", TINY, num_envs=4, mode="sync", anneal_move_entropy=False, **{term: 0.01}, **extra
+            )
+        )
+        for extra in ({option: 0.03}, {})
     )
     rollout = Collector(TINY, 4).collect(plain.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     for progress in (0.0, 0.25, 1.0):
@@ -211,8 +218,8 @@ def test_sharpening_turns_the_message_entropy_bonus_into_a_penalty_along_the_sch
         for learner in (sharpened, plain):
             learner.update(rollout, torch.Generator().manual_seed(0), progress=progress)
             weights.append({t.name: t.weight for t in learner.terms if hasattr(t, "weight")})
-        assert weights[0].pop("entropy_message") == pytest.approx(0.01 - 0.03 * progress)
-        assert weights[1].pop("entropy_message") == pytest.approx(0.01)
+        assert weights[0].pop(term) == pytest.approx(0.01 - 0.03 * progress)
+        assert weights[1].pop(term) == pytest.approx(0.01)
         assert weights[0] == pytest.approx(weights[1])
 
 
@@ -355,6 +362,42 @@ def test_every_encoder_trains_with_the_recipe(encoder, message_map):
     learner, collector = Learner(cfg), Collector(TINY, 4)
     rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     stats = learner.update(rollout, torch.Generator().manual_seed(0))
+    assert all(np.isfinite(v) for v in stats.values())
+
+
+@pytest.mark.parametrize("encoder", ["conv", "marginals", "cells"])
+def test_a_message_head_that_reads_the_observed_plane_ignores_where_the_sender_is_and_what_it_hears(encoder):
+    """`message_reads="observed"`: a sender's message logits follow the goal it observes alone; its moves still
+    read its position and what it hears."""
+    torch.manual_seed(0)
+    net = PolicyNet(TINY, ModelConfig(encoder=encoder, plane_coords=True, message_reads="observed"))
+    n, cells = 16, TINY.env.size**2
+    g = torch.Generator().manual_seed(0)
+
+    def planes(own: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+        one_hot = torch.nn.functional.one_hot(torch.stack([own, seen], 1), cells).float()
+        return one_hot.view(n, 2, TINY.env.size, TINY.env.size)
+
+    own, seen = torch.randint(cells, (2, n), generator=g)
+    heard = torch.randint(2, (n, TINY.slots, TINY.channel.bits), generator=g).float()
+    moves, messages = net(planes(own, seen), heard)
+    moved_moves, moved_messages = net(planes((own + 1) % cells, seen), 1 - heard)
+    assert torch.equal(moved_messages, messages)
+    assert not torch.allclose(moved_moves, moves)
+    assert not torch.allclose(net(planes(own, (seen + 1) % cells), heard)[1], messages)
+
+
+@pytest.mark.parametrize("message_reads", ["all", "observed"])
+def test_the_update_reads_the_message_logits_the_agents_acted_on(message_reads):
+    """The learner's pass over a rollout gives every step the logits acting gave it, whatever the head reads."""
+    cfg = make_train_config("reinforced", TINY, num_envs=4, message_reads=message_reads)
+    learner = Learner(cfg)
+    ro = Collector(TINY, 4).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        fw = learner._forward(ro, torch.arange(4))
+        moves, messages = learner.policy(ro.planes[fw.it, fw.ib].flatten(0, 1), fw.received.flatten(0, 1))
+    assert torch.allclose(fw.msg_logits, messages) and torch.allclose(fw.move_logits, moves)
+    stats = learner.update(ro, torch.Generator().manual_seed(0))
     assert all(np.isfinite(v) for v in stats.values())
 
 

@@ -86,7 +86,8 @@ class Learner:
     def terms(self) -> list[Term]:
         """The objective terms of the policy, from the config (read per step: A3C shares the code book), the
         regularisers scaled down as the budget is played with `anneal_entropy` (all) or `anneal_move_entropy`
-        (the move ones; from where `move_decay` starts), each message's entropy penalised with `sharpen_messages`."""
+        (the move ones; from where `move_decay` starts), each message's and each move's entropy penalised with
+        `sharpen_messages` and `sharpen_moves`."""
         message_scale = max(0.0, 1.0 - self.progress) if self.cfg.anneal_entropy else 1.0
         move_scale = self.move_scale if self.cfg.anneal_entropy or self.cfg.anneal_move_entropy else 1.0
         return policy_terms(self.cfg, self.codebook, message_scale, move_scale, self.progress)
@@ -246,12 +247,13 @@ class Learner:
         # the dense encoding only for a message map; the trunk reads the bits by the head's own product
         encoded = policy.encode_received(per_agent) if policy.message_map is not None else None
         with update_precision(self.cfg.update_dtype):  # what the terms compute from these passes is float32
+            planes = ro.planes[it, cols[ib]].flatten(0, 1)
             if features is not None and features.policy is not None:
                 feats = features.policy[it, cols[ib]].flatten(0, 1)
             else:
-                feats = policy.observation_features(ro.planes[it, cols[ib]].flatten(0, 1), encoded)
+                feats = policy.observation_features(planes, encoded)
             h1, h2 = policy.trunk(feats, policy.read_received(per_agent))
-            msg_logits, move_logits = policy.message_logits(h2), policy.move_logits(h2)
+            msg_logits, move_logits = policy.message_logits(policy.message_state(planes, h2)), policy.move_logits(h2)
         passes = (feats, h1, msg_logits, move_logits)
         return _Forward(cols, it, ib, received, encoded, *(x.float() for x in passes))
 

@@ -339,10 +339,11 @@ def policy_terms(
     """The terms `cfg` asks for, in the order they are evaluated: the reinforcement terms (the entropy
     bonuses always, for their figures; the message bonuses weighted by `message_scale` times the config's
     weight, less `sharpen_messages` times the schedule's `progress` for each message's entropy; the move bonus
-    and the uniform-move pull by `move_scale`), then each auxiliary term whose weight is positive."""
+    and the uniform-move pull by `move_scale`, the move bonus less `sharpen_moves` times `progress`), then each
+    auxiliary term whose weight is positive."""
     terms: list[Term] = [
         PolicyGradient(cfg.clip),
-        Entropy("move", cfg.entropy_move * move_scale),
+        Entropy("move", cfg.entropy_move * move_scale - cfg.sharpen_moves * progress),
         Entropy("message", cfg.entropy_message * message_scale - cfg.sharpen_messages * progress),
     ]
     if cfg.entropy_message_marginal > 0:
