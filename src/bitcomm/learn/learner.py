@@ -246,13 +246,20 @@ class Learner:
         per_agent = received.flatten(0, 1)  # (M * n, slots, K)
         # the dense encoding only for a message map; the trunk reads the bits by the head's own product
         encoded = policy.encode_received(per_agent) if policy.message_map is not None else None
+
+        def read_planes() -> torch.Tensor:  # only where a pass reads them: `read_features` reads them once if it can
+            return ro.planes[it, cols[ib]].flatten(0, 1)
+
         with update_precision(self.cfg.update_dtype):  # what the terms compute from these passes is float32
-            planes = ro.planes[it, cols[ib]].flatten(0, 1)
+            planes = None
             if features is not None and features.policy is not None:
                 feats = features.policy[it, cols[ib]].flatten(0, 1)
             else:
+                planes = read_planes()
                 feats = policy.observation_features(planes, encoded)
             h1, h2 = policy.trunk(feats, policy.read_received(per_agent))
+            if planes is None and policy.message_trunk is not None:
+                planes = read_planes()
             msg_logits, move_logits = policy.message_logits(policy.message_state(planes, h2)), policy.move_logits(h2)
         passes = (feats, h1, msg_logits, move_logits)
         return _Forward(cols, it, ib, received, encoded, *(x.float() for x in passes))

@@ -197,20 +197,24 @@ class PolicyNet(nn.Module):
             return features
         if self.message_map is not None:
             x = torch.cat([x, maps], 1)
-        mass = x.sum((2, 3)).clamp(min=1e-6)  # (N, planes)
-        centre = torch.einsum("npij,cij->npc", x, self.coords) / mass[..., None]  # (N, planes, 2)
-        return torch.cat([features, centre.flatten(1)], 1)
+        return torch.cat([features, self._centres(x)], 1)
 
-    def message_state(self, planes: torch.Tensor, h2: torch.Tensor) -> torch.Tensor:
+    def _centres(self, x: torch.Tensor) -> torch.Tensor:
+        """`(N, P, S, S)` planes -> `(N, P * 2)`: each plane's centre of mass (row, column in [-1, 1])."""
+        mass = x.sum((2, 3)).clamp(min=1e-6)  # (N, planes)
+        return (torch.einsum("npij,cij->npc", x, self.coords) / mass[..., None]).flatten(1)
+
+    def message_state(self, planes: torch.Tensor | None, h2: torch.Tensor) -> torch.Tensor:
         """What the message logits are read from: the second hidden layer `h2`, or (`message_reads` `observed`)
-        the message head's own layers over the observed plane of the `(N, 2, S, S)` planes."""
+        the message head's own layers over the observed plane of the `(N, 2, S, S)` planes (which only then are
+        needed)."""
         if self.message_trunk is None:
             return h2
+        assert planes is not None, "a message head of its own reads the observation planes"
         x = planes[:, OBSERVED_PLANE : OBSERVED_PLANE + 1].to(h2.dtype)
         features = self.observed_conv(x)
         if self.cfg.plane_coords:
-            mass = x.sum((2, 3)).clamp(min=1e-6)
-            features = torch.cat([features, torch.einsum("npij,cij->nc", x, self.coords) / mass], 1)
+            features = torch.cat([features, self._centres(x)], 1)
         return self.message_trunk(features)
 
     def _decoded_maps(self, received_encoded: torch.Tensor | None, shape: torch.Size) -> torch.Tensor:
