@@ -159,6 +159,17 @@ def _with_budget(cfg: Any, episodes: int) -> Any:
     return replace(cfg, episodes=episodes)
 
 
+def add_seed_flags(ap: argparse.ArgumentParser) -> None:
+    """What a seed-by-seed benchmark trains: the recipe, the technique, the task and the seeds."""
+    ap.add_argument("--recipe", default=DEFAULT_RECIPE)
+    ap.add_argument("--estimator", default="improved")
+    ap.add_argument("--messages", default="bitwise")
+    ap.add_argument("--size", type=int, default=10)
+    ap.add_argument("--bits", type=int, default=None, help="default: the task's default for the size")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0)
+
+
 def _solve_star(item: tuple[dict[str, Any], int]) -> dict[str, Any]:
     return solve_seed(*item)
 
@@ -170,13 +181,7 @@ def main() -> None:
     from bitcomm.learn.options import learning_options
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--recipe", default=DEFAULT_RECIPE)
-    ap.add_argument("--estimator", default="improved")
-    ap.add_argument("--messages", default="bitwise")
-    ap.add_argument("--size", type=int, default=10)
-    ap.add_argument("--bits", type=int, default=None, help="default: the task's default for the size")
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--first-seed", type=int, default=0)
+    add_seed_flags(ap)
     ap.add_argument("--minutes", type=float, default=15.0, help="training wall-time budget per seed")
     ap.add_argument(
         "--max-episodes",

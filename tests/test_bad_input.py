@@ -71,6 +71,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
     (ALL, "--move-decay-below"): {"0", "1e300"},  # 0: the decay from the first episode; huge: from the second batch
     (ALL, "--staleness"): {"0"},  # 0: synchronous  # 0 or beyond max_steps: the task's own limit
     (ALL, "--keep-checkpoints"): {"1000000000000"},  # keep them all
+    (ALL, "--held-out-every"): {"0", "1000000000000"},  # 0: never; huge: once, at the end
     (ALL, "--conv-stride"): {"1000000000000"},  # every layer down to one cell
     (ALL, "--checkpoint-seconds"): {"0", "1e300"},  # 0: every batch; huge: only at the end
     **{

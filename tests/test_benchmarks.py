@@ -251,3 +251,23 @@ def test_a_seed_that_diverges_stops_and_is_measured_at_its_last_checkpoint(tmp_p
     result = solve_seed(args, 0)
     assert len(calls) == 2 and result["episodes"] == 16 and "diverged after 40 episodes" in result["diverged"]
     assert result["final_eval"]["sampled"] > 0  # measured at the checkpoint of the first chunk
+
+
+def test_greedy_selection_measures_latest_and_best_and_keeps_measured_seeds(tmp_path: Path) -> None:
+    argv = [sys.executable, "benchmarks/greedy_selection.py", "--size", "4", "--bits", "4", "--seeds", "2",
+            "--episodes", "256", "--held-out-every", "128", "--held-out-episodes", "16", "--eval-episodes", "32",
+            "--jobs", "1", "--out", str(tmp_path)]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    first = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert first.returncode == 0, first.stderr
+    summary = json.loads(first.stdout.strip().splitlines()[-1])
+    assert [r["seed"] for r in summary["seeds"]] == [0, 1]
+    for r in summary["seeds"]:
+        best = json.loads((tmp_path / f"seed{r['seed']}" / "checkpoints" / "best.json").read_text())
+        assert r["latest"]["episodes"] == 256 and r["best"]["episodes"] == best["episodes"] in (128, 256)
+        assert all(r[w]["greedy"] >= 1 and 0 <= r[w]["stalled"] <= 1 for w in ("latest", "best"))
+    assert sum(summary["over_seeds"]["best_against_latest"].values()) == 2
+    again = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert again.returncode == 0 and again.stdout.count("(kept)") == 2, again.stderr
+    bad = subprocess.run([*argv[:2], "--held-out-every", "0"], cwd=ROOT, capture_output=True, text=True, env=env)
+    assert bad.returncode == 2 and "held-out-every=0" in bad.stderr and "Traceback" not in bad.stderr

@@ -179,6 +179,7 @@ def test_save_checkpoint_writes_nothing_non_finite(tmp_path: Path) -> None:
             save_checkpoint(tmp_path, {}, bad_weights, episodes=2, batches=2, state=state)
     assert [e for e, _ in checkpoints(tmp_path)] == [1]
     assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
+        "best.json",
         "ckpt_000000001.safetensors",
         "ckpt_000000001.state.pt",
         "latest.json",
@@ -401,6 +402,76 @@ def test_a_run_keeps_keep_checkpoints(tmp_path: Path, capsys) -> None:
     with (out / "metrics.csv").open(newline="") as f:  # a checkpoint after every batch: the best is kept
         best = min(float(r["charts/episode_length_rolling"]) for r in csv.DictReader(f))
     assert min(rolling_length(f) for _, f in kept) == pytest.approx(best)
+
+
+def test_best_json_names_the_kept_best_and_every_reader_takes_it(tmp_path: Path, capsys) -> None:
+    rolling = {16: 9.0, 32: 4.0, 48: 6.0}
+    for e, length in rolling.items():
+        w = {"policy": {"w": torch.full((2,), float(e))}}
+        save_checkpoint(tmp_path, {}, w, episodes=e, batches=e // 16, state={}, rolling_length=length, keep=1)
+    best = json.loads((tmp_path / "checkpoints" / "best.json").read_text())
+    assert best == {"checkpoint": "ckpt_000000032.safetensors", "state": "ckpt_000000032.state.pt", "episodes": 32,
+                    "batches": 2}  # fmt: skip
+    assert resolve(tmp_path / "checkpoints" / "best.json").name == "ckpt_000000032.safetensors"
+    assert resolve(tmp_path / "checkpoints" / "latest.json").name == "ckpt_000000048.safetensors"
+    (tmp_path / "checkpoints" / "best.json").write_text('{"checkpoint": "../../x.safetensors", "episodes": 1}')
+    with pytest.raises(ConfigError, match="best.json"):
+        resolve(tmp_path / "checkpoints" / "best.json")
+
+
+def test_a_checkpoint_recorded_unranked_is_never_the_best(tmp_path: Path) -> None:
+    """Between a run's held-out evaluations checkpoints are written with rank inf: the rolling mean, which
+    ranks a checkpoint with no rank recorded, must not put one of them above an evaluated one."""
+    for e, r in {16: 30.0, 32: float("inf"), 48: 20.0, 64: float("inf")}.items():
+        w = {"policy": {"w": torch.full((2,), float(e))}}
+        save_checkpoint(tmp_path, {}, w, episodes=e, batches=e // 16, state={}, rolling_length=1.0, keep=1, rank=r)
+    assert [e for e, _ in checkpoints(tmp_path)] == [48, 64]
+    assert json.loads((tmp_path / "checkpoints" / "best.json").read_text())["episodes"] == 48
+
+
+def test_a_run_that_evaluates_keeps_the_checkpoint_that_played_the_held_out_set_best(tmp_path: Path, capsys) -> None:
+    import csv
+
+    from bitcomm.learn.held_out import HELD_OUT_COLUMN, held_out_seed
+    from bitcomm.policies.evaluation import evaluate_checkpoint
+
+    out = tmp_path / "run"
+    argv = ["train", *QUICK, "--episodes", "160", "--held-out-every", "48", "--held-out-episodes", "64"]
+    rc, err = cli(capsys, *argv, "--keep-checkpoints", "1", "--out", str(out))
+    assert rc == 0, err
+    with (out / "metrics.csv").open(newline="") as f:
+        scores = {int(r["episodes"]): float(r[HELD_OUT_COLUMN]) for r in csv.DictReader(f) if r[HELD_OUT_COLUMN]}
+    assert sorted(scores) == [48, 96, 144, 160]  # each batch that crosses a multiple of 48, and the end
+    best = min(scores, key=lambda e: (scores[e], -e))
+    assert json.loads((out / "checkpoints" / "best.json").read_text())["episodes"] == best
+    assert [e for e, _ in checkpoints(out)] == sorted({best, 160})
+    seed = json.loads((out / "config.json").read_text())["held_out_seed"]
+    assert seed == held_out_seed(0) != 0
+    again = evaluate_checkpoint(out / "checkpoints" / "best.json", 64, seed, greedy=True)
+    assert again.mean_episode_length == pytest.approx(scores[best])  # the figure is greedy play of that set
+    rc, err = cli(capsys, "eval", str(out / "checkpoints" / "best.json"), "--episodes", "8", "--json")
+    assert rc == 0, err
+
+
+def test_evaluations_leave_the_training_itself_unchanged(tmp_path: Path, capsys) -> None:
+    """The held-out set is played on a copy with a generator of its own: weights after training are the same bit
+    for bit as a run's that never evaluates."""
+    weights = []
+    for flags in ([], ["--held-out-every", "32", "--held-out-episodes", "16", "--no-held-out-greedy"]):
+        out = tmp_path / f"run{len(weights)}"
+        rc, err = cli(capsys, "train", *QUICK, "--episodes", "96", *flags, "--out", str(out))
+        assert rc == 0, err
+        weights.append(load_weights(out)[0]["policy"])
+    assert weights[0].keys() == weights[1].keys()
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
+def test_held_out_evaluation_is_refused_where_it_cannot_act(capsys, tmp_path: Path) -> None:
+    refused(capsys, "train", *QUICK, "--held-out-every", "16", "--mode", "a3c", "--out", str(tmp_path / "x"),
+            naming="held-out-every")  # fmt: skip
+    refused(capsys, "train", *QUICK, "--held-out-every", "-1", "--out", str(tmp_path / "y"), naming="held-out-every")
+    refused(capsys, "train", *QUICK, "--held-out-episodes", "0", "--out", str(tmp_path / "z"),
+            naming="held-out-episodes")  # fmt: skip
 
 
 def test_keep_checkpoints_is_checked(capsys, tmp_path: Path) -> None:

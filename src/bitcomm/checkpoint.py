@@ -16,7 +16,10 @@ of a checkpoint exist, so a run killed at any moment leaves a readable latest ch
 leaves besides (temporary files, a state without its weights, files newer than `latest.json`) is
 removed by `clean` when a run starts or resumes. Nothing non-finite is ever written (`Diverged`).
 `prune` keeps the last N checkpoints and the best one (the lowest `rank`: the rolling mean episode length on
-the grid, minus the rolling mean team return on a wrapped env, whose episodes may all have one length).
+the grid, minus the rolling mean team return on a wrapped env, whose episodes may all have one length, or the
+held-out evaluation's mean episode length where a run evaluates, `TrainConfig.held_out_every`), and `best.json`
+names the best, written before the prune that may remove the one it named: so
+`bitcomm eval RUN/checkpoints/best.json` (any command that reads a run) reads the best checkpoint.
 """
 
 from __future__ import annotations
@@ -38,6 +41,9 @@ FORMAT = "bitcomm-checkpoint"
 VERSION = 2
 """1: no checksums (still read, unverified); 2: `sha256`, `state_sha256` and `rolling_length`."""
 LATEST = "latest.json"
+BEST = "best.json"
+POINTERS = (LATEST, BEST)
+"""The files of a checkpoints folder that name one of its checkpoints."""
 CHECKPOINTS = "checkpoints"
 NAME = re.compile(r"ckpt_(\d{9})\.(safetensors|state\.pt)")
 """A checkpoint file's name; `latest.json` may name nothing else (so it cannot leave the folder)."""
@@ -158,11 +164,32 @@ def save_checkpoint(
     }
     meta["sha256"] = content_sha256(tensors, meta)
     _atomic(weights_path, lambda p: save_file(tensors, str(p), metadata=meta))
-    pointer = {"checkpoint": weights_path.name, "state": state_path.name, "episodes": episodes, "batches": batches}
-    _atomic(folder / LATEST, lambda p: p.write_text(json.dumps(pointer) + "\n"))
+    _point(folder / LATEST, episodes, batches)
+    best = _best(checkpoints(folder))
+    _point(folder / BEST, best, _batches(folder, best, episodes, batches))
     if keep is not None:
         prune(folder, keep)
     return weights_path
+
+
+def _point(pointer: Path, episodes: int, batches: int) -> None:
+    stem = f"ckpt_{episodes:09d}"
+    record = {
+        "checkpoint": f"{stem}.safetensors",
+        "state": f"{stem}.state.pt",
+        "episodes": episodes,
+        "batches": batches,
+    }
+    _atomic(pointer, lambda p: p.write_text(json.dumps(record) + "\n"))
+
+
+def _batches(folder: Path, episodes: int, latest_episodes: int, latest_batches: int) -> int:
+    if episodes == latest_episodes:
+        return latest_batches
+    try:
+        return int(_metadata(folder / f"ckpt_{episodes:09d}.safetensors").get("batches", "0"))
+    except (ConfigError, ValueError):
+        return 0
 
 
 # ---------------------------------------------------------------------------------------------- find
@@ -171,9 +198,10 @@ def _folder(path: Path | str) -> Path:
     return p / CHECKPOINTS if (p / CHECKPOINTS).is_dir() else p
 
 
-def read_latest(folder: Path) -> dict[str, Any]:
-    """`latest.json` of a checkpoints folder, checked: it names a checkpoint file of this very folder."""
-    latest = folder / LATEST
+def read_latest(folder: Path, which: str = LATEST) -> dict[str, Any]:
+    """`latest.json` (or another pointer, `POINTERS`) of a checkpoints folder, checked: it names a checkpoint
+    file of this very folder."""
+    latest = folder / which
     try:
         pointer = json.loads(latest.read_text())
     except FileNotFoundError:
@@ -196,8 +224,14 @@ def read_latest(folder: Path) -> dict[str, Any]:
 
 
 def resolve(path: Path | str) -> Path:
-    """A run folder, its `checkpoints/` folder or a `.safetensors` file -> the checkpoint file."""
+    """A run folder, its `checkpoints/` folder, a pointer in it (`latest.json`, `best.json`) or a `.safetensors`
+    file -> the checkpoint file."""
     p = Path(path)
+    if p.name in POINTERS and p.is_file():
+        named = p.parent / read_latest(p.parent, p.name)["checkpoint"]
+        if not named.is_file():
+            raise _bad(p, f"names {named.name}, which is missing")
+        return named
     if p.is_dir():
         folder = _folder(p)
         if not (folder / LATEST).is_file():
@@ -276,19 +310,28 @@ def rolling_length(file: Path) -> float:
 
 
 def rank(file: Path) -> float:
-    """What retention ranks a checkpoint by, lower is better: its recorded `rank`, else (checkpoints written
-    before ranks) its rolling mean episode length; inf where it has neither."""
-    value = _recorded(file, "rank")
-    return value if math.isfinite(value) else rolling_length(file)
+    """What retention ranks a checkpoint by, lower is better: its recorded `rank` (inf: recorded as unranked,
+    a checkpoint written between a run's evaluations), else (none recorded, or checkpoints written before ranks)
+    its rolling mean episode length; inf where it has neither."""
+    try:
+        value = float(_metadata(file).get("rank", "nan"))
+    except (ConfigError, ValueError):
+        return math.inf
+    return value if not math.isnan(value) else rolling_length(file)
+
+
+def _best(kept: list[tuple[int, Path]]) -> int:
+    """The episodes of the best of `kept` (lowest `rank`, the later of equals)."""
+    return min(kept, key=lambda ef: (rank(ef[1]), -ef[0]))[0]
 
 
 def prune(folder: Path, keep: int) -> list[int]:
-    """Remove every checkpoint but the last `keep` and the best (lowest `rank`, the later of equals);
-    `latest.json`'s is always among the last. Returns the episodes removed."""
+    """Remove every checkpoint but the last `keep` and the best (lowest `rank`, the later of equals, the one
+    `best.json` names); `latest.json`'s is always among the last. Returns the episodes removed."""
     kept = checkpoints(folder)
     if len(kept) <= keep:
         return []
-    best = min(kept, key=lambda ef: (rank(ef[1]), -ef[0]))[0]
+    best = _best(kept)
     gone = [e for e, _ in kept[:-keep] if e != best]
     for episodes in gone:
         _remove(folder, episodes)

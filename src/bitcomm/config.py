@@ -14,6 +14,9 @@ import numpy as np
 
 from bitcomm.errors import bad_value
 
+MAX_EVAL_EPISODES = 10_000_000
+"""Evaluation keeps 17 bytes per episode and plays 4,096 at a time: 10^7 is 170 MB and hours of CPU."""
+
 MAX_SIZE = 1024
 """Grid side cap: a 1024 x 1024 grid is 2 MB of planes per agent and episode; commands also check memory."""
 MAX_AGENTS = 64

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from bitcomm.config import MAX_EVAL_EPISODES
 from bitcomm.errors import bad_value
 
 if TYPE_CHECKING:
@@ -25,8 +26,6 @@ if TYPE_CHECKING:
 
 MAX_SEED = 2**32 - 1
 """Seeds feed numpy's SeedSequence and torch.manual_seed; 32 bits is what both take everywhere."""
-MAX_EVAL_EPISODES = 10_000_000
-"""Evaluation keeps 17 bytes per episode and plays 4,096 at a time: 10^7 is 170 MB and hours of CPU."""
 MAX_TRAIN_EPISODES = 1_000_000_000
 """A training budget beyond 10^9 episodes would run for years on a CPU."""
 MAX_BATCH = 65_536

@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from bitcomm.config import TaskConfig
+from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig
 from bitcomm.errors import ConfigError, bad_value, check_int, check_number, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
@@ -154,7 +154,20 @@ class TrainConfig:
     checkpoint_seconds: float = 60.0
     """Write a checkpoint at most this often (and at the end)."""
     keep_checkpoints: int = 3
-    """Checkpoints kept on disk: the last this many, and the best (lowest rolling mean episode length)."""
+    """Checkpoints kept on disk: the last this many, and the best (lowest rolling mean episode length, or with
+    `held_out_every` the best held-out evaluation), which `checkpoints/best.json` names."""
+    held_out_every: int = 0
+    """Every this many training episodes and at the end (0: never), play `held_out_episodes` held-out episodes with
+    the current policy and checkpoint it ranked by their mean length, so that retention keeps, and
+    `checkpoints/best.json` names, the checkpoint that played them best (Stable-Baselines3's EvalCallback keeps
+    its `best_model` so). Held out: the episode set of `bitcomm.learn.held_out.held_out_seed(seed)`, which no
+    training batch plays; the figure is logged as `eval/episode_length` and its seconds count in `wall_s`.
+    Model selection, not learning: no gradient sees it, so a run stays pure. Sync mode on the local backend."""
+    held_out_episodes: int = 1000
+    """Held-out episodes each `held_out_every` evaluation plays."""
+    held_out_greedy: bool = True
+    """Whether `held_out_every`'s evaluation plays the most likely move and message (greedy play, which a deployed
+    robot may use) or samples them (how the policy was trained)."""
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -185,7 +198,22 @@ class TrainConfig:
             self._check_move_decay_below()
         if self.staleness and self.backend != "ray":
             raise bad_value("staleness", self.staleness, "acts only on --backend ray; leave it at 0")
-        for name in ("workers", "episodes", "num_envs", "epochs", "minibatches", "keep_checkpoints"):
+        check_int("held_out_every", self.held_out_every, 0)
+        if isinstance(self.held_out_episodes, int) and self.held_out_episodes > MAX_EVAL_EPISODES:
+            raise bad_value("held-out-episodes", self.held_out_episodes, f"must be at most {MAX_EVAL_EPISODES:,}")
+        if self.held_out_every and (self.mode != "sync" or self.backend != "local"):
+            raise bad_value(
+                "held-out-every", self.held_out_every, "acts only in sync mode on the local backend; leave it at 0"
+            )
+        for name in (
+            "workers",
+            "episodes",
+            "num_envs",
+            "epochs",
+            "minibatches",
+            "keep_checkpoints",
+            "held_out_episodes",
+        ):
             check_int(name, getattr(self, name), 1)
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")

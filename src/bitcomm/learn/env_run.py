@@ -85,8 +85,8 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
         row = prog.add_batch(ro.length, ro.team_return, int(ro.alive.sum()))
         return {**row, "charts/team_return_rolling": float(np.mean(prog.recent_return)), **stats}
 
-    def save() -> Path:
-        return save_learner(out, cfg, learner, generator, prog, metric="team_return")
+    def save(rank: float | None) -> Path:
+        return save_learner(out, cfg, learner, generator, prog, metric="team_return", rank=rank)
 
     def postfix(row: dict[str, Any]) -> dict[str, str]:
         return {"ret": f"{row['charts/team_return_rolling']:.2f}"}

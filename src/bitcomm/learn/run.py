@@ -27,6 +27,7 @@ from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.held_out import held_out
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
@@ -108,7 +109,8 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
             prog,
             logger,
             play_and_learn,
-            lambda: save_learner(out, cfg, learner, generator, prog),
+            lambda rank: save_learner(out, cfg, learner, generator, prog, rank=rank),
             postfix,
             progress,
+            held_out(cfg, learner.policy),
         )

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import json
+import math
 import os
 import platform
 import signal
@@ -45,6 +46,7 @@ from bitcomm.checkpoint import (
 )
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
 from bitcomm.plotting import save_figure
 
 ROLLING = 1000
@@ -87,8 +89,12 @@ def oracle_level(cfg: TrainConfig, episodes: int = 2000) -> float | None:
 
 
 def oracle_record(cfg: TrainConfig) -> dict[str, Any]:
-    """What a fresh grid run measures once for its config.json: the oracle's level on its task."""
-    return {"oracle_mean_episode_length": oracle_level(cfg)}
+    """What a fresh grid run measures once for its config.json: the oracle's level on its task, and the seed of
+    its held-out episode set where it evaluates one (`TrainConfig.held_out_every`)."""
+    record: dict[str, Any] = {"oracle_mean_episode_length": oracle_level(cfg)}
+    if cfg.held_out_every:
+        record["held_out_seed"] = held_out_seed(cfg.seed)
+    return record
 
 
 class RunConfig(Protocol):
@@ -129,7 +135,7 @@ def machine_label(record: dict[str, Any] | None) -> str:
     return f"{record.get('cpu', 'unknown')}, {record.get('cores', '?')} cores"
 
 
-CARRIED = ("oracle_mean_episode_length",)
+CARRIED = ("oracle_mean_episode_length", "held_out_seed")
 """config.json keys a resumed run keeps from its first start (measured once, not again at every resume)."""
 
 
@@ -430,11 +436,12 @@ def save_learner(
     prog: Progress,
     metric: str = "episode_length",
     extra: dict[str, Any] | None = None,
+    rank: float | None = None,
 ) -> Path:
     """A checkpoint of a trainer with one learner: its weights, optimizers and random streams, the counters,
-    and what else the trainer needs to resume (`extra`)."""
+    and what else the trainer needs to resume (`extra`); `rank` as `save_run_checkpoint`'s."""
     state = {**prog.state(), **learner_state(learner, generator), **(extra or {})}
-    return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state, metric)
+    return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state, metric, rank)
 
 
 @contextlib.contextmanager
@@ -465,37 +472,53 @@ def train_batches(
     prog: Progress,
     logger: Logger,
     play_and_learn: Callable[[], dict[str, Any]],
-    save: Callable[[], Path],
+    save: Callable[[float | None], Path],
     postfix: Callable[[dict[str, Any]], dict[str, str]],
     progress: bool = True,
+    held_out: HeldOut | None = None,
 ) -> Path:
     """The synchronous trainers' loop (the grid's and a wrapped env's): `play_and_learn()` plays and learns
     one batch, counts it in `prog` and returns its log row; a checkpoint every `checkpoint_seconds` and
     one at the end (returned); the progress bar shows `postfix(row)`. Closes the log however it ends.
     Ctrl-C stops it after the current batch with a checkpoint of it (`stop_after_batch`), then raises
-    KeyboardInterrupt as an interrupt would."""
+    KeyboardInterrupt as an interrupt would.
+
+    With `held_out`, each batch that crosses an evaluation point is followed by the evaluation (its seconds
+    count in `wall_s`, its figure in the batch's log row) and a checkpoint ranked by it (`save(rank)`); the
+    checkpoints between are written unranked (`save(inf)`), so retention keeps the one that played the held-out
+    episodes best. Without, `save(None)` ranks by the rolling mean."""
     from tqdm import tqdm
 
     planned = -(-cfg.episodes // cfg.num_envs) * cfg.num_envs  # whole batches: the episodes that will be played
     bar = tqdm(total=planned, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
     last_save = time.monotonic()
+    unranked = math.inf if held_out is not None else None
     try:
         with stop_after_batch() as stop_asked:
             while prog.episodes < cfg.episodes:
                 before = prog.episodes
                 row = play_and_learn()
+                score = None
+                if held_out is not None and held_out.due(before, prog.episodes, cfg.episodes):
+                    t0 = time.perf_counter()
+                    score = held_out.play()
+                    prog.wall_s += time.perf_counter() - t0
+                    row = {**row, "wall_s": round(prog.wall_s, 3), HELD_OUT_COLUMN: score}
+                rank = unranked if score is None else score
                 logger.log(row)
                 bar.update(prog.episodes - before)
                 bar.set_postfix(**postfix(row))
                 if stop_asked():
-                    path = save()
+                    path = save(rank)
                     bar.close()
                     print(f"stopped after {prog.episodes} episodes, saved as {path}; --resume goes on", file=sys.stderr)
                     raise KeyboardInterrupt
-                if time.monotonic() - last_save >= cfg.checkpoint_seconds and prog.episodes < cfg.episodes:
-                    save()
+                if prog.episodes >= cfg.episodes:
+                    return save(rank)
+                if score is not None or time.monotonic() - last_save >= cfg.checkpoint_seconds:
+                    save(rank)
                     last_save = time.monotonic()
-            return save()
+            return save(None if held_out is None else held_out.play())  # resumed at its budget: nothing to play
     finally:
         bar.close()
         logger.close()
@@ -513,11 +536,15 @@ def save_run_checkpoint(
     prog: Progress,
     state: dict[str, Any],
     metric: str = "episode_length",
+    rank: float | None = None,
 ) -> Path:
     """One checkpoint of the run (sync, a3c or a wrapped env), then the plot of `metric`. Retention keeps the
-    best by the rolling mean of `metric`: the shortest episodes, or (`team_return`) the highest return."""
+    best by `rank` where one is given (a held-out evaluation's mean episode length, inf between evaluations),
+    else by the rolling mean of `metric`: the shortest episodes, or (`team_return`) the highest return."""
     rolling = float(np.mean(prog.recent)) if prog.recent else None
     ranked = -float(np.mean(prog.recent_return)) if metric == "team_return" and prog.recent_return else rolling
+    if rank is not None:
+        ranked = rank
     path = save_checkpoint(
         out,
         cfg.to_dict(),

@@ -1,0 +1,157 @@
+"""Does keeping the checkpoint that plays a held-out set best (`--held-out-every`) lift greedy play?
+
+Trains S seeds of a recipe (improved + bitwise under the default unless told otherwise) with a held-out
+evaluation every `--held-out-every` episodes, then plays each run's latest checkpoint and its best by the
+held-out set (`checkpoints/best.json`) greedily on `--eval-episodes` episodes of seed 12345, a set that
+neither training nor the held-out evaluation plays, and reports per seed and over seeds their mean episode
+length against 1.05x the oracle's on the same episodes (issue 16's greedy target). A seed already measured
+in `--out` (`seed<N>.json`) is kept and an unfinished run resumes, so a study stopped part way goes on where
+it stopped. The last line printed is one JSON object.
+
+    python benchmarks/greedy_selection.py --seeds 16 --jobs 2 --episodes 200000 --held-out-every 8192 \\
+        --eval-episodes 10000 --out runs/greedy-selection
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import statistics
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from solve import add_seed_flags  # benchmarks/ is not a package: run as a script, it is on sys.path
+
+EVAL_SEED = 12345
+TARGET = 1.05
+"""Greedy play within this multiple of the oracle (issue 16)."""
+
+
+def _config(args: dict[str, Any], seed: int) -> Any:
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.learn.config import make_train_config
+
+    task = TaskConfig(EnvConfig(size=args["size"]), ChannelConfig(bits=args["bits"]))
+    return make_train_config(
+        args["recipe"],
+        task,
+        estimator=args["estimator"],
+        messages=args["messages"],
+        seed=seed,
+        episodes=args["episodes"],
+        held_out_every=args["held_out_every"],
+        held_out_episodes=args["held_out_episodes"],
+        keep_checkpoints=1,
+    )
+
+
+def measure_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
+    """Train one seed (or resume it), then play its latest and best checkpoints greedily on the test set."""
+    import torch
+
+    from bitcomm.learn.run import train
+    from bitcomm.learn.run_folder import has_checkpoint
+    from bitcomm.policies.evaluation import evaluate_checkpoint
+
+    out = Path(args["out"])
+    result_file = out / f"seed{seed}.json"
+    if result_file.is_file():
+        return dict(json.loads(result_file.read_text()), kept=True)
+    torch.set_num_threads(args["threads"])
+    run = out / f"seed{seed}"
+    train(_config(args, seed), run, resume=has_checkpoint(run), progress=False)
+    result: dict[str, Any] = {"seed": seed, "run": str(run)}
+    for which in ("latest", "best"):
+        pointer = run / "checkpoints" / f"{which}.json"
+        played = evaluate_checkpoint(pointer, args["eval_episodes"], EVAL_SEED, greedy=True)
+        result[which] = {
+            "episodes": json.loads(pointer.read_text())["episodes"],
+            "greedy": round(played.mean_episode_length, 4),
+            "stalled": round(1.0 - played.success_rate, 5),
+        }
+    tmp = result_file.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result) + "\n")
+    tmp.replace(result_file)
+    return result
+
+
+def over_seeds(results: list[dict[str, Any]], threshold: float) -> dict[str, Any]:
+    """How many seeds each checkpoint brings within the target, the median greedy length, and how the best
+    compares with the latest seed by seed."""
+    summary: dict[str, Any] = {}
+    for which in ("latest", "best"):
+        greedy = [r[which]["greedy"] for r in results]
+        summary[which] = {
+            "within": f"{sum(g <= threshold for g in greedy)}/{len(greedy)}",
+            "median_greedy": statistics.median(greedy),
+        }
+    pairs = [(r["best"]["greedy"], r["latest"]["greedy"]) for r in results]
+    summary["best_against_latest"] = {
+        "better": sum(b < la for b, la in pairs),
+        "same": sum(b == la for b, la in pairs),
+        "worse": sum(b > la for b, la in pairs),
+    }
+    return summary
+
+
+def main() -> None:
+    from bitcomm.errors import ConfigError, check_int
+    from bitcomm.policies.evaluation import evaluate
+    from bitcomm.policies.reference import OraclePolicy
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_seed_flags(ap)
+    ap.add_argument("--episodes", type=int, default=200_000, help="training budget per seed")
+    ap.add_argument("--held-out-every", type=int, default=8192)
+    ap.add_argument("--held-out-episodes", type=int, default=1000)
+    ap.add_argument("--eval-episodes", type=int, default=10_000, help="test episodes (seed 12345) per checkpoint")
+    ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads per seed")
+    ap.add_argument("--out", type=Path, default=Path("runs/greedy-selection"))
+    a = ap.parse_args()
+    try:  # bad input is one line before any seed starts
+        for name in ("seeds", "jobs", "threads", "eval_episodes", "episodes", "held_out_every"):
+            check_int(name, getattr(a, name), 1)
+        check_int("first_seed", a.first_seed, 0)
+        if a.bits is None:
+            from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+
+            a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
+        args = {**vars(a), "out": str(a.out)}
+        task = _config(args, a.first_seed).task
+        oracle = evaluate(OraclePolicy(task), task, a.eval_episodes, EVAL_SEED).mean_episode_length
+    except ConfigError as err:
+        ap.error(str(err))
+    a.out.mkdir(parents=True, exist_ok=True)
+    threshold = TARGET * oracle
+    seeds = range(a.first_seed, a.first_seed + a.seeds)
+    print(
+        f"greedy selection: {a.recipe}, {a.estimator} + {a.messages}, {a.size}x{a.size}, {a.bits} bits, "
+        f"{a.episodes} episodes, held out every {a.held_out_every} ({a.held_out_episodes} episodes), seeds "
+        f"{list(seeds)}; oracle {oracle:.3f} on {a.eval_episodes} episodes of seed {EVAL_SEED}, "
+        f"target {threshold:.3f}; out {a.out}",
+        flush=True,
+    )
+    results = []
+    with ProcessPoolExecutor(min(a.jobs, a.seeds), mp_context=mp.get_context("spawn")) as pool:
+        for r in pool.map(measure_seed, [args] * len(seeds), seeds):
+            print(
+                f"seed {r['seed']}{' (kept)' if r.get('kept') else ''}: "
+                + "  ".join(
+                    f"{w} ({r[w]['episodes']} ep): greedy {r[w]['greedy']:.2f}, {100 * r[w]['stalled']:.2f}% stalled"
+                    for w in ("latest", "best")
+                ),
+                flush=True,
+            )
+            results.append(r)
+    summary = over_seeds(results, threshold)
+    for key, figures in summary.items():
+        print(f"{key}: " + ", ".join(f"{k} {v}" for k, v in figures.items()), flush=True)
+    print(json.dumps({**{k: v for k, v in args.items()}, "oracle": oracle, "target": threshold,
+                      "seeds": results, "over_seeds": summary}))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
