@@ -291,6 +291,10 @@ def plot_learning_curve(out: Path, metric: str = "episode_length") -> Path:
         rolling = [float(r[f"charts/{metric}_rolling"]) for r in rows]
         ax.plot(x, batch, color="C0", alpha=0.25, lw=0.8, label="batch mean")
         ax.plot(x, rolling, color="C0", label=f"last {ROLLING} episodes")
+        held = [(float(r["episodes"]), float(r[HELD_OUT_COLUMN])) for r in rows if r.get(HELD_OUT_COLUMN)]
+        if held and metric == "episode_length":
+            play = "greedy" if config.get("held_out_greedy", True) else "sampled"
+            ax.plot(*zip(*held, strict=True), "o-", color="C1", ms=3, lw=1, label=f"held-out episodes ({play})")
     if config.get("oracle_mean_episode_length") is not None:
         ax.axhline(config["oracle_mean_episode_length"], color="k", ls="--", lw=1, label="oracle")
     ax.set_xlabel("episodes")
