@@ -6,6 +6,7 @@ retention (the last N and the best). Errors are one line with exit status 2 from
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import signal
@@ -453,17 +454,53 @@ def test_a_run_that_evaluates_keeps_the_checkpoint_that_played_the_held_out_set_
     assert rc == 0, err
 
 
+@pytest.mark.parametrize("evaluates", [True, False])
+def test_the_loop_ranks_each_checkpoint_by_the_evaluation_it_follows_and_the_others_not_at_all(
+    tmp_path: Path, evaluates: bool
+) -> None:
+    """`train_batches` with a held-out evaluation every 32 episodes (batches of 16, a checkpoint after every batch):
+    the checkpoints after an evaluation carry its figure, the ones between carry inf (never the best), and without
+    an evaluation every checkpoint is ranked by the rolling mean (None)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut
+    from bitcomm.learn.run_folder import Logger, Progress, train_batches
+
+    cfg = SimpleNamespace(episodes=64, num_envs=16, checkpoint_seconds=0.0)
+    held_out = HeldOut(32, iter([7.0, 3.0]).__next__) if evaluates else None
+    prog, saved = Progress(), []
+
+    def play_and_learn() -> dict:
+        return prog.add_batch(np.full(16, 5), np.zeros(16), 160)
+
+    def save(rank: float | None) -> Path:
+        saved.append((prog.episodes, rank))
+        return tmp_path
+
+    train_batches(cfg, prog, Logger(tmp_path, None), play_and_learn, save, lambda row: {}, False, held_out)
+    if evaluates:
+        assert saved == [(16, math.inf), (32, 7.0), (48, math.inf), (64, 3.0)]
+    else:
+        assert saved == [(16, None), (32, None), (48, None), (64, None)]
+    header = (tmp_path / "metrics.csv").read_text().splitlines()[0]
+    assert (HELD_OUT_COLUMN in header) == evaluates
+
+
 def test_evaluations_leave_the_training_itself_unchanged(tmp_path: Path, capsys) -> None:
     """The held-out set is played on a copy with a generator of its own: weights after training are the same bit
     for bit as a run's that never evaluates."""
-    weights = []
+    weights, streams = [], []
     for flags in ([], ["--held-out-every", "32", "--held-out-episodes", "16", "--no-held-out-greedy"]):
         out = tmp_path / f"run{len(weights)}"
         rc, err = cli(capsys, "train", *QUICK, "--episodes", "96", *flags, "--out", str(out))
         assert rc == 0, err
         weights.append(load_weights(out)[0]["policy"])
+        streams.append(load_state(resolve(out))["torch_rng"])  # the global generator, which training may draw from
     assert weights[0].keys() == weights[1].keys()
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+    assert torch.equal(streams[0], streams[1])
 
 
 def test_held_out_evaluation_is_refused_where_it_cannot_act(capsys, tmp_path: Path) -> None:
