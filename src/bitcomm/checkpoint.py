@@ -168,7 +168,7 @@ def save_checkpoint(
     best = _best(checkpoints(folder))
     _point(folder / BEST, best, _batches(folder, best, episodes, batches))
     if keep is not None:
-        prune(folder, keep)
+        prune(folder, keep, best)
     return weights_path
 
 
@@ -325,13 +325,15 @@ def _best(kept: list[tuple[int, Path]]) -> int:
     return min(kept, key=lambda ef: (rank(ef[1]), -ef[0]))[0]
 
 
-def prune(folder: Path, keep: int) -> list[int]:
+def prune(folder: Path, keep: int, best: int | None = None) -> list[int]:
     """Remove every checkpoint but the last `keep` and the best (lowest `rank`, the later of equals, the one
-    `best.json` names); `latest.json`'s is always among the last. Returns the episodes removed."""
+    `best.json` names; `best` if the caller has just found it); `latest.json`'s is always among the last.
+    Returns the episodes removed."""
     kept = checkpoints(folder)
     if len(kept) <= keep:
         return []
-    best = _best(kept)
+    if best is None:
+        best = _best(kept)
     gone = [e for e, _ in kept[:-keep] if e != best]
     for episodes in gone:
         _remove(folder, episodes)

@@ -31,9 +31,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from bitcomm.commands import env_train
     from bitcomm.learn.env_run import env_run_config
-    from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
     from bitcomm.policies.controller import Controller
-    from bitcomm.policies.evaluation import evaluate
+    from bitcomm.policies.evaluation import evaluate_controller
     from bitcomm.policies.source import resolve_task
 
     use_threads(args)
@@ -42,7 +41,6 @@ def run(args: argparse.Namespace) -> int:
     controller = Controller.load(args.run_path, seed=args.seed)
     task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", strict=True)
     check_eval(task, args.episodes)
-    policy = BatchedPolicy(ControllerAgent(controller, greedy=args.greedy))
-    result = evaluate(policy, task, args.episodes, args.seed)
+    result = evaluate_controller(controller, args.episodes, args.seed, args.greedy, task)
     print_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
     return 0

@@ -110,11 +110,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"checkpoint: {checkpoint}")
     if args.eval_episodes:
         from bitcomm.commands.common import print_result
-        from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
-        from bitcomm.policies.controller import Controller
-        from bitcomm.policies.evaluation import evaluate
+        from bitcomm.policies.evaluation import evaluate_checkpoint
 
-        controller = Controller.load(checkpoint, seed=cfg.seed)
-        result = evaluate(BatchedPolicy(ControllerAgent(controller)), cfg.task, args.eval_episodes, cfg.seed)
+        result = evaluate_checkpoint(checkpoint, args.eval_episodes, cfg.seed, task=cfg.task)
         print_result(result, False, f"eval (sampling, seed {cfg.seed})")
     return 0

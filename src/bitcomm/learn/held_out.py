@@ -53,16 +53,16 @@ def held_out(cfg: TrainConfig, policy: PolicyNet) -> HeldOut | None:
     `held_out_episodes` episodes of the full task (not `train_max_steps`'s), greedy or sampled (`held_out_greedy`)."""
     if not cfg.held_out_every:
         return None
-    from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
     from bitcomm.policies.controller import Controller
-    from bitcomm.policies.evaluation import evaluate
+    from bitcomm.policies.evaluation import evaluate_controller
 
     seed = held_out_seed(cfg.seed)
     config = cfg.to_dict()
 
     def play() -> float:
         controller = Controller(copy.deepcopy(policy), config, seed=seed)  # eval mode on the copy alone
-        agent = BatchedPolicy(ControllerAgent(controller, greedy=cfg.held_out_greedy))
-        return evaluate(agent, cfg.task, cfg.held_out_episodes, seed).mean_episode_length
+        return evaluate_controller(
+            controller, cfg.held_out_episodes, seed, cfg.held_out_greedy, cfg.task
+        ).mean_episode_length
 
     return HeldOut(cfg.held_out_every, play)

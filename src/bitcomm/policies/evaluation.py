@@ -12,7 +12,7 @@ import math
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -108,9 +108,16 @@ def evaluate_checkpoint(
 ) -> EvalResult:
     """`evaluate` for a trained policy (run folder or checkpoint file), acting through `Controller` as
     `bitcomm eval` and a deployed robot do; `task` defaults to the one it was trained on."""
-    from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
     from bitcomm.policies.controller import Controller
 
-    controller = Controller.load(path, seed=seed)
-    policy = BatchedPolicy(ControllerAgent(controller, greedy=greedy))
-    return evaluate(policy, task or controller.task, episodes, seed)
+    return evaluate_controller(Controller.load(path, seed=seed), episodes, seed, greedy, task)
+
+
+def evaluate_controller(
+    controller: Any, episodes: int, seed: int, greedy: bool = False, task: TaskConfig | None = None
+) -> EvalResult:
+    """`evaluate` for a `bitcomm.Controller` (loaded, or wrapping a policy in training), sampling from its own
+    generator; `task` defaults to the one it was trained on."""
+    from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
+
+    return evaluate(BatchedPolicy(ControllerAgent(controller, greedy=greedy)), task or controller.task, episodes, seed)
