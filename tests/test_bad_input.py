@@ -57,6 +57,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
     # (command or *, flag) -> values that are legitimate, with why
     (ALL, "--seed"): {"0"},  # seed 0 is the default
     (ALL, "--eval-seed"): {"0"},
+    ("compare", "--first-seed"): {"0"},  # the default: seeds 0..S-1
     (ALL, "--act-delay"): {"0"},  # moves take effect at once (the paper)
     (ALL, "--flip-prob"): {"0"},  # probabilities: 0 is a noiseless channel
     (ALL, "--drop-prob"): {"0"},

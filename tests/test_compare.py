@@ -206,6 +206,30 @@ def test_report_trains_nothing_and_reports_the_finished_runs(study: tuple[Path, 
     assert "| no-comm | 1 |" in text
 
 
+def test_later_seeds_trained_elsewhere_join_the_study(study: tuple[Path, str], tmp_path: Path) -> None:
+    """`--first-seed F --seeds S` trains seeds F..F+S-1 into the study's layout (a study split across machines, or
+    one whose later seeds are added on another), and a report over all the seeds reads them with the others."""
+    out = tmp_path / "study"
+    shutil.copytree(study[0], out)
+    added = bitcomm("compare", *TINY, "--episodes", "64", "--techniques", "improved-bitwise", "--seeds", "1",
+                    "--first-seed", "2", "--jobs", "1", "--out", str(out), "--json")  # fmt: skip
+    assert added.stderr.count("trained to 64 episodes") == 1 and "improved-bitwise seed 2" in added.stderr
+    assert json.loads((out / "runs" / "improved-bitwise" / "seed2" / "config.json").read_text())["seed"] == 2
+    summary = json.loads(added.stdout)
+    assert (summary["study"]["seeds"], summary["study"]["first_seed"]) == (1, 2)
+    assert [r["seed"] for c in summary["configurations"] for r in c["runs"]] == [2]
+    assert "1 seed (2..2) x 64 episodes" in (out / "table.md").read_text().splitlines()[0]
+    report = json.loads(bitcomm("compare", *TINY, "--episodes", "64", "--seeds", "3", "--report", "--out", str(out),
+                                "--json").stdout)  # fmt: skip
+    assert {c["name"]: [r["seed"] for r in c["runs"]] for c in report["configurations"]} == {
+        **{t: [0, 1] for t in CHOICES if t != "improved-bitwise"},
+        "improved-bitwise": [0, 1, 2],
+    }
+    # the evaluation seed may be any seed outside the training range, below it included
+    runs = plan(CompareConfig(out=tmp_path, techniques=("no-comm",), seeds=2, first_seed=3, eval_seed=1))
+    assert [(r.seed, r.train.seed, r.folder.name) for r in runs] == [(3, 3, "seed3"), (4, 4, "seed4")]
+
+
 def test_report_of_a_folder_without_finished_runs_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -297,6 +321,8 @@ def test_the_tables_read_every_curve_at_fractions_of_the_budget_as_the_plot_draw
         ["--vary", "lr=1e-3", "--vary", "lr=1e-4"],
         ["--techniques", "improved-bitwise,telepathy"],
         ["--eval-seed", "1", "--seeds", "2"],
+        ["--eval-seed", "6", "--seeds", "2", "--first-seed", "5"],
+        ["--first-seed", "4294967295", "--seeds", "2"],
         ["--seeds", "0"],
     ],
 )

@@ -104,3 +104,15 @@ def test_env_flags_without_env_are_one_line(tmp_path: Path, capsys: pytest.Captu
     assert main(["compare", "--topology", "ring", "--out", str(tmp_path / "s")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "topology" in err
+
+
+def test_first_seed_moves_every_run_of_the_study(tmp_path: Path) -> None:
+    from bitcomm.cli import build_parser
+    from bitcomm.commands.compare import env_study
+    from bitcomm.studies.env_compare import plan
+
+    _, _, cfg = env_study(build_parser().parse_args([*STUDY, "--first-seed", "7", "--out", str(tmp_path / "s")]))
+    assert [(r.configuration.technique, r.seed, r.train.seed, r.folder.name) for r in plan(cfg)] == [
+        ("improved-bitwise", 7, 7, "seed7"),
+        ("no-comm", 7, 7, "seed7"),
+    ]

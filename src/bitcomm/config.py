@@ -14,6 +14,9 @@ import numpy as np
 
 from bitcomm.errors import bad_value
 
+MAX_SEED = 2**32 - 1
+"""Seeds feed numpy's SeedSequence and torch.manual_seed; 32 bits is what both take everywhere."""
+
 MAX_EVAL_EPISODES = 10_000_000
 """Evaluation keeps 17 bytes per episode and plays 4,096 at a time: 10^7 is 170 MB and hours of CPU."""
 

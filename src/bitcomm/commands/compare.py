@@ -76,7 +76,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--seeds",
         type=integer(1, MAX_SEEDS),
         default=None,
-        help=f"seeds 0..S-1 per configuration (default {GRID_STUDY_SEEDS}; with --env {ENV_STUDY_SEEDS})",
+        help=f"seeds F..F+S-1 per configuration, F the --first-seed (default {GRID_STUDY_SEEDS}; with --env "
+        f"{ENV_STUDY_SEEDS})",
+    )
+    p.add_argument(
+        "--first-seed",
+        type=SEED,
+        default=0,
+        help="the first training seed (default %(default)s): a study split across machines, or one whose later "
+        "seeds are added elsewhere, trains seeds F..F+S-1 into the same layout and reports them",
     )
     p.add_argument(
         "--episodes",
@@ -139,6 +147,7 @@ def _common(args: argparse.Namespace) -> dict[str, Any]:
         "jobs": args.jobs if args.jobs is not None else os.cpu_count() or 1,
         "eval_episodes": args.eval_episodes,
         "eval_seed": args.eval_seed,
+        "first_seed": args.first_seed,
         "report": args.report,
     }
 

@@ -17,15 +17,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bitcomm.config import MAX_EVAL_EPISODES
+from bitcomm.config import MAX_EVAL_EPISODES, MAX_SEED
 from bitcomm.errors import bad_value
 
 if TYPE_CHECKING:
     from bitcomm.config import TaskConfig
     from bitcomm.learn.config import TrainConfig
 
-MAX_SEED = 2**32 - 1
-"""Seeds feed numpy's SeedSequence and torch.manual_seed; 32 bits is what both take everywhere."""
 MAX_TRAIN_EPISODES = 1_000_000_000
 """A training budget beyond 10^9 episodes would run for years on a CPU."""
 MAX_BATCH = 65_536

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.config import MAX_SEED, ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError, bad_value, check_int
 from bitcomm.learn.options import Option, learning_options
 from bitcomm.learn.recipes import DEFAULT_RECIPE
@@ -161,7 +161,9 @@ class CompareConfig:
     techniques: tuple[str, ...] = CHOICES
     recipe: str = DEFAULT_RECIPE
     seeds: int = GRID_STUDY_SEEDS
-    """Seeds 0 .. seeds-1 of every configuration."""
+    """How many seeds of every configuration: first_seed .. first_seed + seeds - 1."""
+    first_seed: int = 0
+    """The first of them, so that one study can be split across machines, or its later seeds added elsewhere."""
     episodes: int = STUDY_EPISODES
     """The budget of every run."""
     jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
@@ -191,8 +193,17 @@ def check_study_fields(cfg: CompareConfig | EnvCompareConfig) -> None:
         raise bad_value("techniques", cfg.techniques, f"choose from {', '.join(CHOICES)}")
     for name in ("seeds", "jobs", "eval_episodes"):
         check_int(name, getattr(cfg, name), 1)
-    if 0 <= cfg.eval_seed < cfg.seeds:
-        raise bad_value("eval-seed", cfg.eval_seed, f"must not be a training seed (0..{cfg.seeds - 1})")
+    check_int("first_seed", cfg.first_seed, 0)
+    seeds = study_seeds(cfg)
+    if seeds[-1] > MAX_SEED:
+        raise bad_value("first-seed", cfg.first_seed, f"its last seed, {seeds[-1]}, must be at most {MAX_SEED}")
+    if cfg.eval_seed in seeds:
+        raise bad_value("eval-seed", cfg.eval_seed, f"must not be a training seed ({seeds[0]}..{seeds[-1]})")
+
+
+def study_seeds(cfg: CompareConfig | EnvCompareConfig) -> range:
+    """The training seeds of every configuration."""
+    return range(cfg.first_seed, cfg.first_seed + cfg.seeds)
 
 
 class Configuration(NamedTuple):
@@ -265,7 +276,7 @@ def plan(cfg: CompareConfig) -> list[Run]:
     configurations = [Configuration(t, values) for values in products for t in cfg.techniques]
     return [
         Run(conf, seed, train_config(cfg, conf, seed), cfg.out / "runs" / conf.folder / f"seed{seed}")
-        for seed in range(cfg.seeds)
+        for seed in study_seeds(cfg)
         for conf in configurations
     ]
 
@@ -581,6 +592,9 @@ def runs_phrase(study: dict[str, Any], configurations: list[dict[str, Any]]) -> 
     seeds = plural(study["seeds"], "seed", "seeds")
     if len(counts) > 1 or counts[0] != study["seeds"]:
         seeds = (f"{counts[0]}" if len(counts) == 1 else f"{counts[0]}-{counts[-1]}") + f" of {seeds}"
+    first = study.get("first_seed", 0)
+    if first:
+        seeds += f" ({first}..{first + study['seeds'] - 1})"
     return f"{seeds} x {study['episodes']:,} episodes" + (" (finished runs)" if study["report"] else "")
 
 
@@ -691,6 +705,7 @@ def summarize(
             "recipe": cfg.recipe,
             "episodes": first.episodes,
             "seeds": cfg.seeds,
+            "first_seed": cfg.first_seed,
             "report": cfg.report,
             "techniques": list(cfg.techniques),
             "vary": {k: list(v) for k, v in cfg.vary.items()},

@@ -53,6 +53,7 @@ from bitcomm.studies.compare import (
     run_record,
     runs_phrase,
     study_runs,
+    study_seeds,
     technique_entry,
     write_atomic,
     write_curves_csv,
@@ -74,6 +75,8 @@ class EnvCompareConfig:
     out: Path = Path("runs/compare-env")
     techniques: tuple[str, ...] = CHOICES
     seeds: int = ENV_STUDY_SEEDS
+    first_seed: int = 0
+    """Seeds first_seed .. first_seed + seeds - 1 of every technique (see `CompareConfig.first_seed`)."""
     jobs: int = field(default_factory=lambda: os.cpu_count() or 1)
     eval_episodes: int = 1000
     eval_seed: int = 1000
@@ -110,7 +113,7 @@ def plan(cfg: EnvCompareConfig) -> list[Run]:
     """Every run of the study, seed by seed (a study stopped early has every technique's first seeds)."""
     return [
         Run(Configuration(t), seed, run_config(cfg, t, seed), cfg.out / "runs" / t / f"seed{seed}")
-        for seed in range(cfg.seeds)
+        for seed in study_seeds(cfg)
         for t in cfg.techniques
     ]
 
@@ -159,6 +162,7 @@ def summarize(cfg: EnvCompareConfig, runs: list[Run], curves: dict[Path, EnvCurv
             "channel": base.pop("channel"),
             "episodes": cfg.base.episodes,
             "seeds": cfg.seeds,
+            "first_seed": cfg.first_seed,
             "report": cfg.report,
             "techniques": list(cfg.techniques),
             "learning": {
