@@ -12,7 +12,7 @@ import math
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -21,6 +21,9 @@ from bitcomm.envs.core import StepResult
 from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.errors import bad_value
 from bitcomm.policies.reference import Policy
+
+if TYPE_CHECKING:
+    from bitcomm.policies.controller import Controller
 
 EVAL_CHUNK = 4096
 
@@ -114,7 +117,7 @@ def evaluate_checkpoint(
 
 
 def evaluate_controller(
-    controller: Any, episodes: int, seed: int, greedy: bool = False, task: TaskConfig | None = None
+    controller: Controller, episodes: int, seed: int, greedy: bool = False, task: TaskConfig | None = None
 ) -> EvalResult:
     """`evaluate` for a `bitcomm.Controller` (loaded, or wrapping a policy in training), sampling from its own
     generator; `task` defaults to the one it was trained on."""
