@@ -38,8 +38,9 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bitcomm.studies.compare import read_curve, rolling_at_episodes  # noqa: E402
-from solve import solve_seed  # noqa: E402  (benchmarks/ is not a package)
+from bitcomm.studies.compare import read_curve  # noqa: E402
+from run_marks import parse_marks, rolling_at_marks  # noqa: E402  (benchmarks/ is not a package)
+from solve import solve_seed  # noqa: E402
 
 GROUPS: dict[str, tuple[str, ...]] = {"ppo_reuse": ("epochs", "minibatches", "clip")}
 """Options changed together: a clip range means nothing without reuse, and reuse is the epochs x minibatches."""
@@ -74,14 +75,12 @@ def _cell(reached: dict[str, Any] | None) -> str:
     return f"{reached['episodes']:,} ep / {reached['wall_s']:.0f} s" if reached else "not reached"
 
 
-def rolling_cell(run: Path, marks: list[int]) -> str:
+def rolling_cell(run: Path, marks: tuple[int, ...]) -> str:
     """The run's rolling training length at each of `marks` episodes, "—" past its last logged batch."""
     if not (run / "metrics.csv").is_file():
         return " / ".join("—" for _ in marks)
-    curve = read_curve(run)
-    return " / ".join(
-        f"{rolling_at_episodes(curve, m, 'length_rolling'):.2f}" if m <= curve.episodes[-1] else "—" for m in marks
-    )
+    at = rolling_at_marks(read_curve(run), marks)
+    return " / ".join("—" if at[m] is None else f"{at[m]:.2f}" for m in marks)
 
 
 def table(results: list[tuple[str, dict[str, Any], dict[str, Any]]], a: argparse.Namespace) -> str:
@@ -123,7 +122,8 @@ def main() -> None:
         "--max-episodes", type=int, default=None, help="horizon and episode budget of a row that anneals its rates"
     )
     ap.add_argument("--out", type=Path, default=None, help="default runs/ablation/<base>-to-<target>-<size>x<size>")
-    ap.add_argument("--marks", default="", help="comma-separated episodes at which to read every row's rolling length")
+    marks_help = "comma-separated episodes at which to read every row's rolling length"
+    ap.add_argument("--marks", type=parse_marks, default=(), help=marks_help)
     a = ap.parse_args()
     if a.base == a.target:
         ap.error(f"--target {a.target!r}: must differ from --base")
@@ -131,12 +131,6 @@ def main() -> None:
         ap.error("--minutes must be > 0; --chunk, --threads, --bits >= 1; --size >= 2")
     if a.max_episodes is not None and a.max_episodes < 1:
         ap.error(f"--max-episodes {a.max_episodes}: must be >= 1")
-    try:
-        a.marks = [int(m) for m in a.marks.split(",")] if a.marks else []
-    except ValueError:
-        ap.error(f"--marks {a.marks!r}: must be comma-separated whole numbers of episodes, e.g. 20000,40000")
-    if any(m < 1 for m in a.marks):
-        ap.error(f"--marks {a.marks}: each must be >= 1")
     out = a.out = a.out or Path("runs/ablation") / f"{a.base}-to-{a.target}-{a.size}x{a.size}"
     plan = rows(a.base, a.target)
     if a.only:

@@ -271,3 +271,39 @@ def test_greedy_selection_measures_latest_and_best_and_keeps_measured_seeds(tmp_
     assert again.returncode == 0 and again.stdout.count("(kept)") == 2, again.stderr
     bad = subprocess.run([*argv[:2], "--held-out-every", "0"], cwd=ROOT, capture_output=True, text=True, env=env)
     assert bad.returncode == 2 and "held-out-every=0" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_run_marks_reads_loose_runs_as_the_study_tables_do(tmp_path: Path) -> None:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = tmp_path / "run"
+    train = [sys.executable, "-m", "bitcomm.cli", "train", "--size", "3", "--bits", "4", "--max-steps", "16",
+             "--episodes", "64", "--num-envs", "16", "--epochs", "1", "--minibatches", "1", "--eval-episodes", "0",
+             "--quiet", "--threads", "1", "--out", str(run)]  # fmt: skip
+    assert subprocess.run(train, cwd=ROOT, capture_output=True, env=env, timeout=120).returncode == 0
+    argv = [
+        sys.executable,
+        "benchmarks/run_marks.py",
+        str(run),
+        str(run),
+        "--marks",
+        "24,1000",
+        "--eval-episodes",
+        "50",
+    ]
+    out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    group = json.loads(out.stdout.strip().splitlines()[-1])[
+        "improved + bitwise, 3x3, 4 bits, env.max_steps=16"
+    ]  # a task option named
+    episodes, rolling = np.loadtxt(run / "metrics.csv", delimiter=",", skiprows=1, usecols=(1, 5), unpack=True)
+    first = group["per_run"][0]
+    assert first["rolling_at"] == {"24": np.interp(24, episodes, rolling), "1000": None}  # not played that far
+    below = np.flatnonzero(rolling < 2 * group["oracle"])
+    assert (first["reached"]["2x"] or {}).get("episodes") == (int(episodes[below[0]]) if below.size else None)
+    assert group["summary"]["rolling_at"]["24"]["n"] == 2 and group["summary"]["rolling_at"]["1000"] is None
+    assert "| mean ± 95% over 2 |" in out.stdout
+    for bad, named in (([str(tmp_path / "nothing")], "run="), ([str(run), "--marks", "0"], "--marks")):
+        refused = subprocess.run([sys.executable, "benchmarks/run_marks.py", *bad], cwd=ROOT, capture_output=True,
+                                 text=True, timeout=60)  # fmt: skip
+        assert refused.returncode == 2 and "Traceback" not in refused.stderr
+        assert named in refused.stderr.strip().splitlines()[-1]

@@ -303,7 +303,7 @@ def run_status(run: Run) -> str:
     latest = run.folder / CHECKPOINTS / LATEST
     if not latest.is_file():
         return "new"
-    recorded, wanted = _flat(_recorded_config(run.folder, type(run.train)).to_dict()), _flat(run.train.to_dict())
+    recorded, wanted = _flat(recorded_config(run.folder, type(run.train)).to_dict()), _flat(run.train.to_dict())
     differs = [k for k in wanted if k not in RESUMABLE and recorded.get(k) != wanted[k]]
     if differs:
         raise bad_value("out", str(run.folder), f"it holds a run with other {', '.join(differs)}; use another --out")
@@ -315,7 +315,7 @@ def run_status(run: Run) -> str:
     return "done"
 
 
-def _recorded_config(folder: Path, kind: type[Any]) -> Any:
+def recorded_config(folder: Path, kind: type[Any]) -> Any:
     """The config (a `kind`: TrainConfig or EnvTrainConfig) in a run's config.json; fields added since it was
     written take their defaults."""
     from bitcomm.learn.run_folder import read_json_object
