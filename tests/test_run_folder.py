@@ -325,7 +325,11 @@ def test_kill_9_then_resume_loses_at_most_one_interval(tmp_path: Path, capsys) -
     assert leftovers(out) == [] and json.loads(latest.read_text())["episodes"] == 320
 
 
-def test_ctrl_c_saves_the_batch_it_stopped_after_and_resume_goes_on(tmp_path: Path, capsys) -> None:
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_or_sigterm_saves_the_batch_it_stopped_after_and_resume_goes_on(
+    tmp_path: Path, capsys, signum: signal.Signals
+) -> None:
+    """Ctrl-C, or the SIGTERM that `kill PID` and a scheduler's time limit send, loses no batch played."""
     out = tmp_path / "interrupted"
     args = ["train", *QUICK[:-1], "3600", "--episodes", "960"]  # no periodic checkpoint: only the stop saves
     proc = subprocess.Popen(
@@ -338,13 +342,13 @@ def test_ctrl_c_saves_the_batch_it_stopped_after_and_resume_goes_on(tmp_path: Pa
         if metrics.exists() and len(metrics.read_text().splitlines()) > 3:  # header + 3 batches
             break
         time.sleep(0.01)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(signum)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
+    assert proc.returncode == 128 + signum, err  # as a shell reports a process the signal ended
     played = json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"]
     logged = len(metrics.read_text().splitlines()) - 1
     assert 48 <= played < 960 and played == logged * 16, err  # every batch played is in the checkpoint
-    assert f"stopped after {played} episodes" in err and "Traceback" not in err
+    assert f"stopped after {played} episodes on {signum.name}" in err and "Traceback" not in err
     rc, err = cli(capsys, *args, "--out", str(out), "--resume")
     assert rc == 0, err
     assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] == 960

@@ -51,9 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         print(f"bitcomm {args.command}: error: {err}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
         print(f"bitcomm {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return int(getattr(err, "exit_code", 130))  # a run stopped on SIGTERM (`Stopped`) ends as killed by it
 
 
 if __name__ == "__main__":

@@ -448,27 +448,48 @@ def save_learner(
     return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state, metric, rank)
 
 
+class Stopped(KeyboardInterrupt):
+    """A run stopped on a signal after saving the batch it was on; `exit_code` is the shell's 128 + signal."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.exit_code = 128 + signum
+
+
+def _stoppable_signals() -> list[signal.Signals]:
+    """The signals a training loop may take over: SIGINT where Python's own handler has it (not where it is
+    ignored, as in a background job, or another handler took it), and SIGTERM (what `kill PID` and a cluster
+    scheduler's time limit send) where it would kill the process, in a process started as a program (a
+    study's worker is stopped by its parent with SIGTERM, at once, and keeps that)."""
+    import multiprocessing
+
+    if threading.current_thread() is not threading.main_thread():
+        return []
+    wanted = [signal.SIGINT] if signal.getsignal(signal.SIGINT) is signal.default_int_handler else []
+    if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL and multiprocessing.parent_process() is None:
+        wanted.append(signal.SIGTERM)
+    return wanted
+
+
 @contextlib.contextmanager
-def stop_after_batch() -> Iterator[Callable[[], bool]]:
-    """Ctrl-C while training asks the loop to stop after the batch it is on, so that the run can save it and
-    lose nothing (without this, up to `checkpoint_seconds` of training); a second Ctrl-C interrupts at
-    once. Only where Python's own handler has SIGINT: in the main thread, and not where it is ignored (a
-    background job) or another handler took it."""
+def stop_after_batch() -> Iterator[Callable[[], int | None]]:
+    """Ctrl-C or SIGTERM while training asks the loop to stop after the batch it is on, so that the run can
+    save it and lose nothing (without this, up to `checkpoint_seconds` of training); the same signal again
+    stops at once. Yields a function that returns the signal asked for, or None."""
     asked: list[int] = []
-    previous = signal.getsignal(signal.SIGINT)
-    if threading.current_thread() is not threading.main_thread() or previous is not signal.default_int_handler:
-        yield lambda: False
-        return
+    taken = {s: signal.getsignal(s) for s in _stoppable_signals()}
 
     def ask(signum: int, frame: object) -> None:
         asked.append(signum)
-        signal.signal(signal.SIGINT, previous)
+        signal.signal(signum, taken[signal.Signals(signum)])
 
-    signal.signal(signal.SIGINT, ask)
+    for s in taken:
+        signal.signal(s, ask)
     try:
-        yield lambda: bool(asked)
+        yield lambda: asked[0] if asked else None
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for s, previous in taken.items():
+            signal.signal(s, previous)
 
 
 def train_batches(
@@ -484,8 +505,8 @@ def train_batches(
     """The synchronous trainers' loop (the grid's and a wrapped env's): `play_and_learn()` plays and learns
     one batch, counts it in `prog` and returns its log row; a checkpoint every `checkpoint_seconds` and
     one at the end (returned); the progress bar shows `postfix(row)`. Closes the log however it ends.
-    Ctrl-C stops it after the current batch with a checkpoint of it (`stop_after_batch`), then raises
-    KeyboardInterrupt as an interrupt would.
+    Ctrl-C or SIGTERM stops it after the current batch with a checkpoint of it (`stop_after_batch`), then raises
+    `Stopped`, a KeyboardInterrupt, as an interrupt would.
 
     With `held_out`, each batch that crosses an evaluation point is followed by the evaluation (its seconds
     count in `wall_s`, its figure in the batch's log row) and a checkpoint ranked by it (`save(rank)`); the
@@ -512,11 +533,14 @@ def train_batches(
                 logger.log(row)
                 bar.update(prog.episodes - before)
                 bar.set_postfix(**postfix(row))
-                if stop_asked():
+                signum = stop_asked()
+                if signum is not None:
                     path = save(rank)
                     bar.close()
-                    print(f"stopped after {prog.episodes} episodes, saved as {path}; --resume goes on", file=sys.stderr)
-                    raise KeyboardInterrupt
+                    name = signal.Signals(signum).name
+                    print(f"stopped after {prog.episodes} episodes on {name}, saved as {path}; --resume goes on",
+                          file=sys.stderr)  # fmt: skip
+                    raise Stopped(signum)
                 if prog.episodes >= cfg.episodes:
                     return save(rank)
                 if score is not None or time.monotonic() - last_save >= cfg.checkpoint_seconds:
