@@ -354,6 +354,22 @@ def test_ctrl_c_or_sigterm_saves_the_batch_it_stopped_after_and_resume_goes_on(
     assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] == 960
 
 
+def test_a_study_worker_leaves_sigterm_to_its_parent() -> None:
+    """`bitcomm compare` stops its runs with SIGTERM at once; only a process started as a program takes it over."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from bitcomm.learn.run_folder import _stoppable_signals
+
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        assert signal.SIGTERM in _stoppable_signals()  # this process: pytest, started as a program
+        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+            assert signal.SIGTERM not in pool.submit(_stoppable_signals).result(timeout=60)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 # ---------------------------------------------------------------------------------------------- retention
 def test_retention_keeps_the_last_n_and_the_best(tmp_path: Path) -> None:
     rolling = {16: 9.0, 32: 4.0, 48: 6.0, 64: 7.0, 80: 8.0}
