@@ -22,7 +22,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from solve import add_seed_flags  # benchmarks/ is not a package: run as a script, it is on sys.path
+from solve import add_seed_flags, seed_range  # benchmarks/ is not a package: run as a script, it is on sys.path
 
 EVAL_SEED = 12345
 TARGET = 1.05
@@ -126,7 +126,7 @@ def main() -> None:
         ap.error(str(err))
     a.out.mkdir(parents=True, exist_ok=True)
     threshold = TARGET * oracle
-    seeds = range(a.first_seed, a.first_seed + a.seeds)
+    seeds = seed_range(a)
     print(
         f"greedy selection: {a.recipe}, {a.estimator} + {a.messages}, {a.size}x{a.size}, {a.bits} bits, "
         f"{a.episodes} episodes, held out every {a.held_out_every} ({a.held_out_episodes} episodes), seeds "

@@ -170,6 +170,11 @@ def add_seed_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--first-seed", type=int, default=0)
 
 
+def seed_range(a: argparse.Namespace) -> range:
+    """The seeds `add_seed_flags` asked for: `--seeds` of them from `--first-seed`."""
+    return range(a.first_seed, a.first_seed + a.seeds)
+
+
 def _solve_star(item: tuple[dict[str, Any], int]) -> dict[str, Any]:
     return solve_seed(*item)
 
@@ -227,7 +232,7 @@ def main() -> None:
         ap.error(str(err))
     out = a.out or Path("runs/solve") / f"{a.recipe}-{a.size}x{a.size}-{time.strftime('%Y%m%d-%H%M%S')}"
     args = {**vars(a), "out": str(out), "set": overrides}
-    seeds = range(a.first_seed, a.first_seed + a.seeds)
+    seeds = seed_range(a)
     print(
         f"solve: recipe {a.recipe}, {a.estimator} + {a.messages}, {a.size}x{a.size}, {a.bits} bits, "
         f"options {dict(overrides)}, seeds {list(seeds)}, {a.minutes} min each, out {out}",
