@@ -39,7 +39,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bitcomm.studies.compare import read_curve  # noqa: E402
-from run_marks import parse_marks, rolling_at_marks  # noqa: E402  (benchmarks/ is not a package)
+from run_marks import parse_marks, reached_cell, rolling_at_marks  # noqa: E402  (benchmarks/ is not a package)
 from solve import solve_seed  # noqa: E402
 
 GROUPS: dict[str, tuple[str, ...]] = {"ppo_reuse": ("epochs", "minibatches", "clip")}
@@ -71,10 +71,6 @@ def rows(base: str, target: str) -> list[tuple[str, dict[str, Any]]]:
     return out
 
 
-def _cell(reached: dict[str, Any] | None) -> str:
-    return f"{reached['episodes']:,} ep / {reached['wall_s']:.0f} s" if reached else "not reached"
-
-
 def rolling_cell(run: Path, marks: tuple[int, ...]) -> str:
     """The run's rolling training length at each of `marks` episodes, "—" past its last logged batch."""
     if not (run / "metrics.csv").is_file():
@@ -96,7 +92,7 @@ def table(results: list[tuple[str, dict[str, Any], dict[str, Any]]], a: argparse
     for name, change, r in results:
         shown = ", ".join(f"{k}={v}" for k, v in change.items()) if name not in (a.base, a.target) else "—"
         lines.append(
-            f"| {name} | {shown} | {_cell(r['reached']['2x'])} | {_cell(r['reached']['1.15x'])} | "
+            f"| {name} | {shown} | {reached_cell(r['reached']['2x'])} | {reached_cell(r['reached']['1.15x'])} | "
             f"{r['final_eval']['sampled']:.2f} | {r['final_eval']['greedy']:.2f} | {r['episodes']:,}"
             f"{' (then diverged)' if r.get('diverged') else ''}"
             + (f" | {rolling_cell(a.out / name / f'seed{a.seed}', a.marks)}" if a.marks else "")
@@ -164,8 +160,9 @@ def main() -> None:
             saved.write_text(json.dumps({"settings": settings, "result": result}, indent=1) + "\n")
         results.append((name, change, result))
         r = result
-        print(f"{name}: 2x {_cell(r['reached']['2x'])}, 1.15x {_cell(r['reached']['1.15x'])}, final sampled "
-              f"{r['final_eval']['sampled']:.2f} / greedy {r['final_eval']['greedy']:.2f}", flush=True)  # fmt: skip
+        print(f"{name}: 2x {reached_cell(r['reached']['2x'])}, 1.15x {reached_cell(r['reached']['1.15x'])}, "
+              f"final sampled {r['final_eval']['sampled']:.2f} / greedy {r['final_eval']['greedy']:.2f}",
+              flush=True)  # fmt: skip
     text = table(results, a)
     (out / "table.md").write_text(text + "\n")
     print(text)

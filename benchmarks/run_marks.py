@@ -99,8 +99,9 @@ def _interval_cell(value: dict[str, Any] | None, runs: int, fmt: str = ".2f") ->
     return f"{value['mean']:{fmt}} ± {(hi - lo) / 2:{fmt}}{over}"
 
 
-def _reached_cell(reached: dict[str, Any] | None) -> str:
-    return "never" if reached is None else f"{reached['episodes']:,} ep / {reached['wall_s']:.0f} s"
+def reached_cell(reached: dict[str, Any] | None) -> str:
+    """When a level was first reached ('12,288 ep / 41 s'), or 'not reached'."""
+    return f"{reached['episodes']:,} ep / {reached['wall_s']:.0f} s" if reached else "not reached"
 
 
 def print_tables(groups: dict[str, dict[str, Any]], marks: tuple[int, ...]) -> None:
@@ -115,7 +116,7 @@ def print_tables(groups: dict[str, dict[str, Any]], marks: tuple[int, ...]) -> N
         print("|" + " --- |" * len(header))
         for r in group["per_run"]:
             cells = [r["run"], *("-" if r["rolling_at"][m] is None else f"{r['rolling_at'][m]:.2f}" for m in marks)]
-            cells += [_reached_cell(r["reached"][k]) for k in levels]
+            cells += [reached_cell(r["reached"][k]) for k in levels]
             cells.append(f"{r['episodes']:,} ep / {r['wall_s']:.0f} s")
             print("| " + " | ".join(cells) + " |")
         s = group["summary"]
@@ -127,7 +128,7 @@ def print_tables(groups: dict[str, dict[str, Any]], marks: tuple[int, ...]) -> N
 
 
 def main() -> None:
-    from bitcomm.errors import ConfigError
+    from bitcomm.errors import ConfigError, check_int
     from bitcomm.studies.compare import oracle_result
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -136,13 +137,11 @@ def main() -> None:
     ap.add_argument("--eval-episodes", type=int, default=1000, help="the oracle's episodes (default %(default)s)")
     ap.add_argument("--eval-seed", type=int, default=1000, help="the oracle's episode seed (default %(default)s)")
     a = ap.parse_args()
-    if a.eval_episodes < 1:
-        ap.error(f"invalid eval-episodes={a.eval_episodes}: must be an integer >= 1")
-    if a.eval_seed < 0:
-        ap.error(f"invalid eval-seed={a.eval_seed}: must be an integer >= 0")
     groups: dict[str, dict[str, Any]] = defaultdict(lambda: {"per_run": []})
     oracles: dict[str, float | None] = {}
-    try:  # a folder that is no run is one line, before anything is read
+    try:  # bad input is one line, before anything is read
+        check_int("eval_episodes", a.eval_episodes, 1)
+        check_int("eval_seed", a.eval_seed, 0)
         for folder in a.runs:
             if not (folder / "config.json").is_file() or not (folder / "metrics.csv").is_file():
                 raise ConfigError(f"invalid run={str(folder)!r}: needs config.json and metrics.csv (a run folder)")

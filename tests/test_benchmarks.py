@@ -280,21 +280,12 @@ def test_run_marks_reads_loose_runs_as_the_study_tables_do(tmp_path: Path) -> No
              "--episodes", "64", "--num-envs", "16", "--epochs", "1", "--minibatches", "1", "--eval-episodes", "0",
              "--quiet", "--threads", "1", "--out", str(run)]  # fmt: skip
     assert subprocess.run(train, cwd=ROOT, capture_output=True, env=env, timeout=120).returncode == 0
-    argv = [
-        sys.executable,
-        "benchmarks/run_marks.py",
-        str(run),
-        str(run),
-        "--marks",
-        "24,1000",
-        "--eval-episodes",
-        "50",
-    ]
+    argv = [sys.executable, "benchmarks/run_marks.py", str(run), str(run), "--marks", "24,1000", "--eval-episodes",
+            "50"]  # fmt: skip
     out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr
-    group = json.loads(out.stdout.strip().splitlines()[-1])[
-        "improved + bitwise, 3x3, 4 bits, env.max_steps=16"
-    ]  # a task option named
+    name = "improved + bitwise, 3x3, 4 bits, env.max_steps=16"  # a task option away from its default is named
+    group = json.loads(out.stdout.strip().splitlines()[-1])[name]
     episodes, rolling = np.loadtxt(run / "metrics.csv", delimiter=",", skiprows=1, usecols=(1, 5), unpack=True)
     first = group["per_run"][0]
     assert first["rolling_at"] == {"24": np.interp(24, episodes, rolling), "1000": None}  # not played that far
