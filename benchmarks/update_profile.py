@@ -26,7 +26,7 @@ from torch.profiler import ProfilerActivity, profile
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError, check_int
 from bitcomm.learn.allocator import keep_freed_memory
-from bitcomm.learn.config import make_train_config
+from bitcomm.learn.config import TrainConfig, make_train_config
 from bitcomm.learn.learner import Learner
 from bitcomm.learn.recipes import RECIPES
 from bitcomm.learn.rollout import Collector
@@ -42,6 +42,15 @@ GROUPS: dict[str, tuple[str, ...]] = {
 
 def group_of(name: str) -> str:
     return next((g for g, prefixes in GROUPS.items() if name.startswith(prefixes)), "other")
+
+
+def fresh_learner(cfg: TrainConfig, threads: int) -> tuple[Learner, torch.Generator]:
+    """A fresh learner and generator (seed 0) in the process state training runs in: malloc's thresholds kept
+    (`bitcomm.learn.allocator`), `threads` torch threads."""
+    keep_freed_memory()
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    return Learner(cfg), torch.Generator().manual_seed(0)
 
 
 def main() -> None:
@@ -62,10 +71,7 @@ def main() -> None:
         cfg = make_train_config(a.recipe, task, num_envs=a.num_envs, messages=a.messages, mode="sync")
     except ConfigError as err:
         ap.error(str(err))
-    keep_freed_memory()  # as training does
-    torch.set_num_threads(a.threads)
-    torch.manual_seed(0)
-    learner, generator = Learner(cfg), torch.Generator().manual_seed(0)
+    learner, generator = fresh_learner(cfg, a.threads)
     ro = Collector(cfg.training_task, cfg.num_envs).collect(learner.policy, np.random.SeedSequence(0), generator)
     learner.update(ro, generator)
     with profile(activities=[ProfilerActivity.CPU]) as prof:

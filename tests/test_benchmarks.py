@@ -229,6 +229,26 @@ def test_allocator_times_both_settings_in_turn_and_ends_with_json() -> None:
     assert bad.returncode == 2 and "updates" in bad.stderr.strip().splitlines()[-1] and "Traceback" not in bad.stderr
 
 
+def test_denormals_times_a_trained_run_s_update_both_ways_and_ends_with_json(tmp_path: Path) -> None:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = str(tmp_path / "run")
+    train = [sys.executable, "-m", "bitcomm.cli", "train", "--size", "3", "--bits", "4", "--max-steps", "16",
+             "--episodes", "32", "--num-envs", "16", "--messages", "onehot", "--eval-episodes", "0", "--quiet",
+             "--threads", "1", "--out", run]  # fmt: skip
+    assert subprocess.run(train, cwd=ROOT, capture_output=True, env=env, timeout=120).returncode == 0
+    argv = [sys.executable, "benchmarks/denormals.py", run, "--rounds", "1", "--batches", "1"]
+    out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    assert summary["task"] == "3x3, K=4, onehot" and summary["update_speedup"] > 0
+    assert set(summary["median_update_s"]) == set(summary["agent_steps_per_s"]) == {"on", "off"}
+    for bad, named in (([str(tmp_path / "nothing")], "no such file or run folder"), ([run, "--rounds", "0"], "rounds")):
+        refused = subprocess.run([sys.executable, "benchmarks/denormals.py", *bad], cwd=ROOT, capture_output=True,
+                                 text=True, env=env, timeout=60)  # fmt: skip
+        assert refused.returncode == 2 and "Traceback" not in refused.stderr
+        assert named in refused.stderr.strip().splitlines()[-1]
+
+
 def test_a_seed_that_diverges_stops_and_is_measured_at_its_last_checkpoint(tmp_path: Path, monkeypatch) -> None:
     """`solve_seed` (and so every ablation row) records a divergence instead of crashing the whole study."""
     sys.path.insert(0, str(ROOT / "benchmarks"))

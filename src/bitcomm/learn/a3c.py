@@ -32,6 +32,7 @@ from bitcomm.checkpoint import first_nonfinite
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.denormals import flush_denormals
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
@@ -151,8 +152,9 @@ def _worker(
                 next_batch.value += 1
             # sync, rollout, update
             pull(local, remote)
-            ro = collector.collect(learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(k,)), generator)
-            stats = learner.update(ro, generator, progress=cfg.schedule_progress(claimed_before))
+            with flush_denormals():
+                ro = collector.collect(learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(k,)), generator)
+                stats = learner.update(ro, generator, progress=cfg.schedule_progress(claimed_before))
             results.put(("batch", w, ro.length.copy(), ro.team_return.copy(), ro.success.copy(), stats))
         results.put(("done", w))
     except BaseException:  # report, so the main process stops with the worker's traceback

@@ -20,6 +20,8 @@ from typing import Protocol, TypeVar
 
 import torch
 
+from bitcomm.learn.denormals import denormals_flushed
+
 T = TypeVar("T")
 
 
@@ -44,7 +46,9 @@ def critic_beside_policy(learner: HasHelper, threads: int) -> Iterator[None]:
         return
     previous = torch.get_num_threads()
     torch.set_num_threads(threads // 2)
-    learner.helper = ThreadPoolExecutor(1, thread_name_prefix="bitcomm-critic")
+    learner.helper = ThreadPoolExecutor(  # in the trainer's denormal mode (bitcomm.learn.denormals)
+        1, thread_name_prefix="bitcomm-critic", initializer=torch.set_flush_denormal, initargs=(denormals_flushed(),)
+    )
     try:
         yield
     finally:

@@ -22,6 +22,7 @@ from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_weights
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
+from bitcomm.learn.denormals import flush_denormals
 from bitcomm.learn.env_config import EnvTrainConfig, is_env_config
 from bitcomm.learn.env_learner import EnvLearner
 from bitcomm.learn.env_rollout import make_vec, play
@@ -54,7 +55,7 @@ def train_env(cfg: EnvTrainConfig, out: Path, resume: bool = False, progress: bo
             raise ConfigError(
                 f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})"
             ) from None
-        with run_lock(out):
+        with run_lock(out), flush_denormals():
             return _train(cfg, vec, out, resume, progress)
 
 

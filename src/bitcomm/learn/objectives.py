@@ -45,7 +45,7 @@ from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.estimators import Advantages, policy_gradient_loss
 from bitcomm.learn.rollout import Rollout
-from bitcomm.policies.heads import marginal_entropy
+from bitcomm.policies.heads import marginal_entropy, probabilities
 from bitcomm.policies.networks import PolicyNet
 
 
@@ -200,7 +200,7 @@ class Entropy:
     def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
         if self.head == "move":
             logp = b.move_log_softmax
-            h = -(logp.exp() * logp).sum(-1).mean()
+            h = -(probabilities(logp) * logp).sum(-1).mean()
         else:
             h = b.msg_log_prob_and_entropy[1].mean()
         return -(b.n * (self.weight * h)), {f"charts/{self.name}": h.item()}

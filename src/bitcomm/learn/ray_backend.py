@@ -36,6 +36,7 @@ import torch
 from bitcomm.errors import ConfigError, bad_value
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.denormals import flush_denormals
 from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.learn.run_folder import (
     Logger,
@@ -83,7 +84,9 @@ class RolloutWorker:
             self.version = version
         t0 = time.perf_counter()
         generator = torch.Generator().manual_seed(sample_seed(self.cfg.seed, batch))
-        ro = self.collector.collect(self.policy, np.random.SeedSequence(self.cfg.seed, spawn_key=(batch,)), generator)
+        seed = np.random.SeedSequence(self.cfg.seed, spawn_key=(batch,))
+        with flush_denormals():
+            ro = self.collector.collect(self.policy, seed, generator)
         arrays = {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in ro._asdict().items()}
         return {"batch": batch, "version": version, "collect_s": time.perf_counter() - t0, "rollout": arrays}
 

@@ -27,6 +27,7 @@ from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.denormals import flush_denormals
 from bitcomm.learn.held_out import held_out
 from bitcomm.learn.run_folder import (
     Logger,
@@ -55,7 +56,7 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = Tr
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ConfigError(f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})") from None
-    with run_lock(out):
+    with run_lock(out), flush_denormals():
         if cfg.backend == "ray":
             from bitcomm.learn.ray_backend import train_ray
 

@@ -22,12 +22,24 @@ from bitcomm.errors import bad_value
 MAX_MARGINAL_BITS = 12
 """`marginal_entropy` sums over all 2^K messages: at most 4,096 of them."""
 
+SMALLEST_LOG_PROB = -80.0
+"""Where `probabilities` floors a log-probability: e^-80 = 1.8e-35, still a normal float32 (float32's exp is
+below its smallest normal, 1.2e-38, from -87.3 on)."""
+
+
+def probabilities(log_probs: torch.Tensor) -> torch.Tensor:
+    """`exp(log_probs)` with each log-probability floored at `SMALLEST_LOG_PROB`. On a CPU, torch's exp of an
+    input below -87.3 leaves its vectorised path and costs 100-200x more per element; late in training many of a
+    near-deterministic head's 2^K message log-probabilities are below -87 (docs/tuning.md, session 32). Below
+    e^-80 a probability changes no sum it enters, and its gradient (as small) is dropped."""
+    return log_probs.clamp(min=SMALLEST_LOG_PROB).exp()
+
 
 def marginal_entropy(head: Any, logits: torch.Tensor) -> torch.Tensor:
     """H(mean_i Pm(. | s_i)): the entropy of the average message distribution of the rows of `logits (N, out)`,
     exact over all 2^K messages (K <= MAX_MARGINAL_BITS), differentiable. It is largest when different
     senders' states put their mass on different messages; a message two states share lowers it."""
-    p = head.log_prob_of_terms(head.log_prob_terms(logits)).exp().mean(0)
+    p = probabilities(head.log_prob_of_terms(head.log_prob_terms(logits))).mean(0)
     return -(p * p.clamp(min=1e-30).log()).sum()
 
 
@@ -134,7 +146,7 @@ class OneHotHead:
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         logp = torch.log_softmax(logits, -1)
-        return -(logp.exp() * logp).sum(-1)
+        return -(probabilities(logp) * logp).sum(-1)
 
     def log_prob_and_entropy(self, logits: torch.Tensor, bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """`log_prob(logits, bits)` and `entropy(logits)` from one log-softmax, with their gradient in closed
@@ -175,7 +187,7 @@ class _LogProbAndEntropy(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, logits: torch.Tensor, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[override]
         logp = torch.log_softmax(logits, -1)
-        p = logp.exp()
+        p = probabilities(logp)
         entropy = -(p * logp).sum(-1)
         ctx.save_for_backward(logp, p, entropy, index)
         return logp.gather(-1, index[..., None])[..., 0], entropy

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from bitcomm.envs.vector import EnvLayout
-from bitcomm.policies.heads import MessageHead, make_head
+from bitcomm.policies.heads import MessageHead, make_head, probabilities
 from bitcomm.policies.networks import concat_linear
 
 
@@ -47,7 +47,7 @@ class CategoricalActions:
 
     def entropy(self, out: torch.Tensor) -> torch.Tensor:
         logp = self.log_softmax(out)
-        return -torch.where(self.mask, logp.exp() * logp, 0.0).sum(-1)
+        return -torch.where(self.mask, probabilities(logp) * logp, 0.0).sum(-1)
 
     def sample(self, out: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
         probs = self.log_softmax(out).exp()
