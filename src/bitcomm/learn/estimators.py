@@ -135,7 +135,8 @@ def policy_gradient_loss(
 ) -> torch.Tensor:
     """Scalar to minimise: -(1/#valid (t,b)) sum_{valid t,b} sum_j [log pi_j(a) A^a + log Pm_j(m) A^m].
 
-    `logp_*` are (T, B, n) log-probabilities of the sampled actions and messages. Advantages are
+    `logp_*` are (T, B, n) log-probabilities of the sampled actions and messages (or any `(..., n)` with `valid
+    (...)`: the learner passes its minibatch's valid steps alone, `(M, n)`). Advantages are
     detached, so the critics' baselines get no gradient from here. Agents share parameters: summing
     over j adds every agent's samples to the same gradient (SPEC section 4).
     """

@@ -319,12 +319,11 @@ class Learner:
             scales = []
             for k, loss in enumerate(losses):
                 grads = torch.autograd.grad(loss, params, retain_graph=k < len(losses) - 1, allow_unused=True)
-                norm = torch.nn.utils.get_total_norm([g for g in grads if g is not None])
-                scales.append(min(1.0, self.cfg.max_grad_norm / (float(norm) + 1e-6)))
-                total = [
-                    t if g is None else (g * scales[k] if t is None else t + g * scales[k])
-                    for t, g in zip(total, grads, strict=True)
-                ]
+                present = [g for g in grads if g is not None]
+                scales.append(min(1.0, self.cfg.max_grad_norm / (float(torch.nn.utils.get_total_norm(present)) + 1e-6)))
+                if scales[k] < 1.0:  # one call for every tensor: a small network's step is mostly per-call costs
+                    torch._foreach_mul_(present, scales[k])
+                total = [t if g is None else (g if t is None else t + g) for t, g in zip(total, grads, strict=True)]
         else:
             weighted = torch.stack([loss * scale for loss, scale in zip(losses, scales, strict=True)]).sum()
             total = list(torch.autograd.grad(weighted, params, allow_unused=True))

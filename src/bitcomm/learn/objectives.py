@@ -88,21 +88,29 @@ class StepBatch:
         self.msg_logits, self.move_logits = msg_logits, move_logits  # (M * n, .)
         self.policy, self.routes = policy, routes
         self.n = ro.moves.shape[2]
-        self.valid = ro.valid[:, cols]
+
+    @functools.cached_property
+    def at(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The valid steps as indices into the rollout's `(T, B, ...)` arrays: `(it, cols[ib])`."""
+        return self.it, self.cols[self.ib]
+
+    @functools.cached_property
+    def step_log_probs(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Differentiable `(M, n)` log pi(a_t) and log Pm(m_t) of what the rollout sampled, at the valid steps."""
+        M, n = self.it.shape[0], self.n
+        logp_move = self.move_log_softmax.gather(-1, self.ro.moves[self.at].view(-1, 1)).view(M, n)
+        return logp_move, self.msg_log_prob_and_entropy[0].view(M, n)
 
     @functools.cached_property
     def log_probs(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Differentiable `(T, Bc, n)` log pi(a_t) and log Pm(m_t) of what the rollout sampled; 0 where invalid."""
-        ro, it, ib, n = self.ro, self.it, self.ib, self.n
-        bc, M = self.cols[ib], it.shape[0]
-        logp_move = torch.log_softmax(self.move_logits, -1).gather(-1, ro.moves[it, bc].view(-1, 1)).view(M, n)
-        logp_msg = self.msg_log_prob_and_entropy[0].view(M, n)
+        """`step_log_probs` in the rollout's layout: `(T, Bc, n)`, 0 where invalid."""
 
         def full(x: torch.Tensor) -> torch.Tensor:  # (M, n) sample values -> (T, Bc, n)
-            out = torch.zeros(ro.valid.shape[0], self.cols.shape[0], n, dtype=x.dtype)
-            out[it, ib] = x
+            out = torch.zeros(self.ro.valid.shape[0], self.cols.shape[0], self.n, dtype=x.dtype)
+            out[self.it, self.ib] = x
             return out
 
+        logp_move, logp_msg = self.step_log_probs
         return full(logp_move), full(logp_msg)
 
     @functools.cached_property
@@ -113,12 +121,12 @@ class StepBatch:
         return self.policy.head.log_prob_and_entropy(self.msg_logits, bits)
 
     @functools.cached_property
-    def sub_advantages(self) -> Advantages:
-        """The advantages of this minibatch's columns."""
-        a, c = self.adv, self.cols
+    def step_advantages(self) -> Advantages:
+        """The advantages at the valid steps: `(M, n)` (returns `(M,)`)."""
+        a, at = self.adv, self.at
         if a is None:
             raise ValueError("this batch was built without advantages")
-        return Advantages(a.action[:, c], a.message[:, c], a.returns[:, c])
+        return Advantages(a.action[at], a.message[at], a.returns[at])
 
     @functools.cached_property
     def move_log_softmax(self) -> torch.Tensor:
@@ -154,7 +162,8 @@ def clipped_policy_loss(
     valid: torch.Tensor,
     clip: float,
 ) -> torch.Tensor:
-    """PPO's clipped surrogate, applied to the action and message parts with their own advantages."""
+    """PPO's clipped surrogate, applied to the action and message parts with their own advantages; any layout
+    `(..., n)` with `valid (...)`, as `policy_gradient_loss`."""
 
     def part(logp: torch.Tensor, old: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         ratio = torch.exp(logp - old)
@@ -174,13 +183,13 @@ class PolicyGradient:
     auxiliary: bool = False
 
     def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
-        logp_move, logp_msg = b.log_probs
-        adv, cols = b.sub_advantages, b.cols
+        logp_move, logp_msg = b.step_log_probs  # at the valid steps only: every one of them counts
+        adv, every = b.step_advantages, torch.ones(logp_move.shape[0], dtype=torch.bool)
         if self.clip > 0:
-            old_move, old_msg = b.ro.logp_move[:, cols], b.ro.logp_message[:, cols]
-            pg = clipped_policy_loss(logp_move, logp_msg, old_move, old_msg, adv, b.valid, self.clip)
+            old_move, old_msg = b.ro.logp_move[b.at], b.ro.logp_message[b.at]
+            pg = clipped_policy_loss(logp_move, logp_msg, old_move, old_msg, adv, every, self.clip)
         else:
-            pg = policy_gradient_loss(logp_move, logp_msg, adv, b.valid)
+            pg = policy_gradient_loss(logp_move, logp_msg, adv, every)
         return pg, {"losses/policy": pg.item()}
 
 

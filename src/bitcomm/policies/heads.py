@@ -62,6 +62,7 @@ class BitwiseHead:
         self.bits = bits
         self.out_features = bits  # one logit per bit
         self.in_features = bits  # a receiver reads the bits themselves
+        self._which_terms: dict[torch.dtype, torch.Tensor] = {}
 
     def encode(self, bits: torch.Tensor) -> torch.Tensor:
         return bits.float()
@@ -77,12 +78,15 @@ class BitwiseHead:
     def log_prob_terms(self, logits: torch.Tensor) -> torch.Tensor:
         """`(N, K)` logits -> `(N, 2K)` log P(bit = 1) and log P(bit = 0): every message's log-probability
         is linear in them, so their mean over samples gives every message's mean log-probability."""
-        return torch.cat([F.logsigmoid(logits), F.logsigmoid(-logits)], -1)
+        return F.logsigmoid(torch.cat([logits, -logits], -1))
 
     def log_prob_of_terms(self, terms: torch.Tensor) -> torch.Tensor:
-        """`(N, 2K)` terms (or their means) -> `(N, 2^K)` log-probability of every message (by index)."""
-        codes = index_to_bits(torch.arange(1 << self.bits), self.bits).to(terms.dtype)  # (2^K, K)
-        return terms[:, : self.bits] @ codes.T + terms[:, self.bits :] @ (1 - codes).T
+        """`(N, 2K)` terms (or their means) -> `(N, 2^K)` log-probability of every message (by index): one product
+        with the `(2K, 2^K)` matrix of which term each message sums (built once per dtype)."""
+        if terms.dtype not in self._which_terms:
+            codes = index_to_bits(torch.arange(1 << self.bits), self.bits).to(terms.dtype)  # (2^K, K)
+            self._which_terms[terms.dtype] = torch.cat([codes.T, 1 - codes.T])
+        return terms @ self._which_terms[terms.dtype]
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         p = torch.sigmoid(logits)
