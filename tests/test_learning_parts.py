@@ -401,6 +401,33 @@ def test_the_update_reads_the_message_logits_the_agents_acted_on(message_reads):
     assert all(np.isfinite(v) for v in stats.values())
 
 
+@pytest.mark.parametrize("clip", [0.0, 0.2])
+def test_the_policy_gradient_term_reads_its_minibatch_s_own_steps(clip):
+    """A minibatch is a shuffled subset of the batch's episodes, and the term works on its valid steps alone: each
+    step's log-probabilities are those acting recorded for that episode's step (the policy has not moved yet), and
+    its advantages that episode's: the plain term is -(1/#steps) sum of log-probability times advantage, PPO's (its
+    ratio at 1) -(1/#steps) sum of the advantages."""
+    from bitcomm.learn.objectives import PolicyGradient
+
+    cfg = make_train_config("reinforced", TINY, num_envs=8)
+    learner = Learner(cfg)
+    ro = Collector(TINY, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    adv = learner.advantages(ro)
+    cols = torch.tensor([5, 2, 7])
+    with torch.no_grad():
+        batch = learner._batch(ro, learner._forward(ro, cols, learner.read_features(ro)), adv)
+        loss, _ = PolicyGradient(clip)(batch)
+        logp_move, logp_message = batch.step_log_probs
+    valid = ro.valid[:, cols]
+    it, ib = valid.nonzero(as_tuple=True)
+    t, b = it, cols[ib]
+    assert torch.allclose(logp_move, ro.logp_move[t, b], atol=1e-5)
+    assert torch.allclose(logp_message, ro.logp_message[t, b], atol=1e-5)
+    weights = (1.0, 1.0) if clip > 0 else (ro.logp_move[t, b], ro.logp_message[t, b])  # PPO's ratio is 1 here
+    expected = -(weights[0] * adv.action[t, b] + weights[1] * adv.message[t, b]).sum() / valid.sum()
+    assert loss.item() == pytest.approx(expected.item(), abs=1e-4)
+
+
 @pytest.mark.parametrize("encoder", ["conv", "marginals", "cells"])
 @pytest.mark.parametrize("estimator", ["standard", "improved"])
 def test_reading_the_observations_once_per_update_makes_the_same_update(encoder, estimator, monkeypatch):
