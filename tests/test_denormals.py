@@ -50,12 +50,14 @@ def test_training_flushes_denormals_and_puts_the_thread_s_mode_back(monkeypatch)
 @pytest.mark.parametrize("flushing", [True, False])
 def test_the_critic_s_helper_thread_computes_in_the_trainer_s_mode(flushing):
     """The critic's step runs on a helper thread (bitcomm.learn.beside); in another mode than the policy's it
-    would make a two-thread run differ from the one-thread run wherever a denormal occurs."""
+    would make a two-thread run differ from the one-thread run wherever a denormal occurs. The helper takes the
+    mode the trainer had when the pair was set up, not whatever its thread would inherit when it starts."""
     learner = types.SimpleNamespace(helper=None)
     torch.set_flush_denormal(flushing)
     try:
         with critic_beside_policy(learner, 2):
             assert learner.helper is not None
+            torch.set_flush_denormal(not flushing)  # the helper's thread starts at its first task, after this
             assert learner.helper.submit(denormals_flushed).result() is flushing
     finally:
         torch.set_flush_denormal(False)
