@@ -120,13 +120,20 @@ def test_solve_asks_for_the_horizon_of_an_annealing_recipe() -> None:
     assert refused.returncode == 2 and "--max-episodes" in refused.stderr.strip().splitlines()[-1]
 
 
+def train_tiny_run(run: Path | str, *options: str) -> None:
+    """`bitcomm train` of a 3x3, 4-bit run of 16-step episodes, one thread, no closing evaluation, plus `options`:
+    the run a benchmark that reads run folders is tested on."""
+    argv = [sys.executable, "-m", "bitcomm.cli", "train", "--size", "3", "--bits", "4", "--max-steps", "16",
+            "--num-envs", "16", "--eval-episodes", "0", "--quiet", "--threads", "1", "--out", str(run),
+            *options]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    assert subprocess.run(argv, cwd=ROOT, capture_output=True, env=env, timeout=120).returncode == 0
+
+
 def test_greedy_split_plays_a_run_four_ways(tmp_path: Path) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     run = str(tmp_path / "run")
-    train = [sys.executable, "-m", "bitcomm.cli", "train", "--size", "3", "--bits", "4", "--max-steps", "16",
-             "--episodes", "32", "--num-envs", "16", "--epochs", "1", "--minibatches", "1", "--eval-episodes", "0",
-             "--quiet", "--threads", "1", "--out", run]  # fmt: skip
-    assert subprocess.run(train, cwd=ROOT, capture_output=True, env=env, timeout=120).returncode == 0
+    train_tiny_run(run, "--episodes", "32", "--epochs", "1", "--minibatches", "1")
     out = subprocess.run([sys.executable, "benchmarks/greedy_split.py", run, "--episodes", "20"], cwd=ROOT,
                          capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
     assert out.returncode == 0, out.stderr
@@ -232,10 +239,7 @@ def test_allocator_times_both_settings_in_turn_and_ends_with_json() -> None:
 def test_denormals_times_a_trained_run_s_update_both_ways_and_ends_with_json(tmp_path: Path) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     run = str(tmp_path / "run")
-    train = [sys.executable, "-m", "bitcomm.cli", "train", "--size", "3", "--bits", "4", "--max-steps", "16",
-             "--episodes", "32", "--num-envs", "16", "--messages", "onehot", "--eval-episodes", "0", "--quiet",
-             "--threads", "1", "--out", run]  # fmt: skip
-    assert subprocess.run(train, cwd=ROOT, capture_output=True, env=env, timeout=120).returncode == 0
+    train_tiny_run(run, "--episodes", "32", "--messages", "onehot")
     argv = [sys.executable, "benchmarks/denormals.py", run, "--rounds", "1", "--batches", "1"]
     out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr
@@ -296,10 +300,7 @@ def test_greedy_selection_measures_latest_and_best_and_keeps_measured_seeds(tmp_
 def test_run_marks_reads_loose_runs_as_the_study_tables_do(tmp_path: Path) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     run = tmp_path / "run"
-    train = [sys.executable, "-m", "bitcomm.cli", "train", "--size", "3", "--bits", "4", "--max-steps", "16",
-             "--episodes", "64", "--num-envs", "16", "--epochs", "1", "--minibatches", "1", "--eval-episodes", "0",
-             "--quiet", "--threads", "1", "--out", str(run)]  # fmt: skip
-    assert subprocess.run(train, cwd=ROOT, capture_output=True, env=env, timeout=120).returncode == 0
+    train_tiny_run(run, "--episodes", "64", "--epochs", "1", "--minibatches", "1")
     argv = [sys.executable, "benchmarks/run_marks.py", str(run), str(run), "--marks", "24,1000", "--eval-episodes",
             "50"]  # fmt: skip
     out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)
