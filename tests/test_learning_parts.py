@@ -510,6 +510,27 @@ def test_the_marginal_entropy_is_that_of_the_average_message_distribution(name):
     assert marginal_entropy(head, sure[name][[0, 0]]).item() == pytest.approx(0.0, abs=1e-6)
 
 
+@pytest.mark.parametrize("name", ["bitwise", "onehot"])
+@pytest.mark.parametrize("bits", [1, 2, 3, 4, 5])
+def test_the_mean_message_probabilities_are_each_message_s_by_index_with_their_gradient(name, bits):
+    """`head.mean_probabilities` against brute force: each message's log-probability by `log_prob` of its bits
+    (index order, bit 0 most significant), exponentiated and averaged over the rows; same values, same gradient
+    of a weighted sum (the bitwise head's split into two halves of bits must keep every message's place)."""
+    head = make_head(name, bits)
+    gen = torch.Generator().manual_seed(bits)
+    logits = (3 * torch.randn(7, head.out_features, generator=gen, dtype=torch.float64)).requires_grad_()
+    every = torch.arange(1 << bits)
+    all_bits = torch.stack([(every >> (bits - 1 - k)) & 1 for k in range(bits)], -1).to(torch.uint8)
+    brute = torch.stack([head.log_prob(logits, all_bits[m].expand(7, bits)) for m in every], -1).exp().mean(0)
+    mean = head.mean_probabilities(logits)
+    assert mean.shape == (1 << bits,)
+    assert torch.allclose(mean, brute)
+    weights = torch.randn(1 << bits, generator=gen, dtype=torch.float64)
+    (expected,) = torch.autograd.grad((brute * weights).sum(), logits)
+    (got,) = torch.autograd.grad((mean * weights).sum(), logits)
+    assert torch.allclose(got, expected)
+
+
 def test_the_marginal_entropy_bonus_needs_at_most_4096_messages():
     """Above 12 bits the default recipe trains with the per-message bonus instead; asked for, it is one line."""
     wide = TaskConfig(EnvConfig(size=4, max_steps=20), ChannelConfig(bits=13))

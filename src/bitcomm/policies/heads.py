@@ -39,8 +39,27 @@ def marginal_entropy(head: Any, logits: torch.Tensor) -> torch.Tensor:
     """H(mean_i Pm(. | s_i)): the entropy of the average message distribution of the rows of `logits (N, out)`,
     exact over all 2^K messages (K <= MAX_MARGINAL_BITS), differentiable. It is largest when different
     senders' states put their mass on different messages; a message two states share lowers it."""
-    p = probabilities(head.log_prob_of_terms(head.log_prob_terms(logits))).mean(0)
+    p = head.mean_probabilities(logits)
     return -(p * p.clamp(min=1e-30).log()).sum()
+
+
+class _MeanProbability(torch.autograd.Function):
+    """`(N, C)` log-probabilities -> `(C,)` mean of `probabilities(log_probs)` over the rows, with the gradient in
+    closed form, `p * g / N`: autograd's graph of the floor, the exponential and the mean writes three more
+    `(N, C)` tensors in the backward pass (the mean's division, the floor's mask and its `where`), at K = 10 three
+    `(N, 1024)` ones. Below the floor the gradient is `e^-80 g / N` rather than 0: as negligible as the
+    probability itself."""
+
+    @staticmethod
+    def forward(ctx: Any, log_probs: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        p = probabilities(log_probs)
+        ctx.save_for_backward(p)
+        return p.mean(0)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        (p,) = ctx.saved_tensors
+        return p * (grad / p.shape[0])
 
 
 def check_marginal_bits(weight: float, bits: int) -> None:
@@ -62,7 +81,7 @@ class BitwiseHead:
         self.bits = bits
         self.out_features = bits  # one logit per bit
         self.in_features = bits  # a receiver reads the bits themselves
-        self._which_terms: dict[torch.dtype, torch.Tensor] = {}
+        self._which_terms: dict[tuple[int, torch.dtype], torch.Tensor] = {}
 
     def encode(self, bits: torch.Tensor) -> torch.Tensor:
         return bits.float()
@@ -82,11 +101,27 @@ class BitwiseHead:
 
     def log_prob_of_terms(self, terms: torch.Tensor) -> torch.Tensor:
         """`(N, 2K)` terms (or their means) -> `(N, 2^K)` log-probability of every message (by index): one product
-        with the `(2K, 2^K)` matrix of which term each message sums (built once per dtype)."""
-        if terms.dtype not in self._which_terms:
-            codes = index_to_bits(torch.arange(1 << self.bits), self.bits).to(terms.dtype)  # (2^K, K)
-            self._which_terms[terms.dtype] = torch.cat([codes.T, 1 - codes.T])
-        return terms @ self._which_terms[terms.dtype]
+        with the `(2K, 2^K)` matrix of which term each message sums (built once per size and dtype)."""
+        bits = terms.shape[-1] // 2
+        key = (bits, terms.dtype)
+        if key not in self._which_terms:
+            codes = index_to_bits(torch.arange(1 << bits), bits).to(terms.dtype)  # (2^k, k)
+            self._which_terms[key] = torch.cat([codes.T, 1 - codes.T])
+        return terms @ self._which_terms[key]
+
+    def mean_probabilities(self, logits: torch.Tensor) -> torch.Tensor:
+        """`(N, K)` logits -> `(2^K,)` mean over the rows of every message's probability (by index). A message's
+        probability is the product of its first K // 2 bits' and its last bits' probabilities, so the mean is one
+        `(2^(K//2), N) x (N, 2^(K - K//2))` product: at K = 7 it writes `(N, 8 + 16)` probabilities where the
+        every-message table writes `(N, 128)`, at K = 10 64 against 1,024 (that table was a third of a 32x32
+        update: docs/tuning.md, session 33). Each half's log-probability is floored as in `probabilities`, so a
+        message below e^-160 counts as 0."""
+        first = self.bits // 2
+        if first == 0:  # K = 1: one half
+            return probabilities(self.log_prob_of_terms(self.log_prob_terms(logits))).mean(0)
+        parts = logits.split([first, self.bits - first], -1)
+        a, b = (probabilities(self.log_prob_of_terms(self.log_prob_terms(part))) for part in parts)
+        return (a.T @ b).flatten() / logits.shape[0]
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         p = torch.sigmoid(logits)
@@ -147,6 +182,10 @@ class OneHotHead:
 
     def log_prob_of_terms(self, terms: torch.Tensor) -> torch.Tensor:
         return terms
+
+    def mean_probabilities(self, logits: torch.Tensor) -> torch.Tensor:
+        """`(N, 2^K)` logits -> `(2^K,)` mean over the rows of every message's probability."""
+        return _MeanProbability.apply(torch.log_softmax(logits, -1))
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         logp = torch.log_softmax(logits, -1)
