@@ -13,7 +13,13 @@ what is seen is not yet a cycle). Each such episode is put down with its period 
 or push against a wall, on fixed messages; 2: agents step back and forth), whether the messages arriving
 change along the cycle, and which agents choose a move in it.
 
+`--stalls N` then shows the first N greedy episodes still running a few steps before the limit, as each agent
+sees them there: its cell and goal, the bits arriving, its move probabilities, and the probability of each bit it
+sends being 1; a bit near 0.5 is a code the sender hedges between two words, which greedy play rounds to one
+(docs/tuning.md, session 33).
+
     python benchmarks/greedy_split.py RUN [--episodes 2000] [--seed 0] [--max-period 64] [--census-only] [--detail]
+        [--stalls N]
 """
 
 from __future__ import annotations
@@ -84,6 +90,59 @@ def cycle_census(
     return cut, census
 
 
+def stalled_inputs(
+    policy: Callable[[Any], tuple[np.ndarray, np.ndarray]], task: Any, episodes: int, seed: int, count: int
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The first `count` episodes of the seeded set that greedy `policy` has not ended `STALL_MARGIN` steps before the
+    limit: each one's `(planes (n, 2, S, S), received (n, slots, K), state)` at that step."""
+    from bitcomm.policies.evaluation import play_first_episodes, seeded_episode_envs
+
+    at = task.env.max_steps - STALL_MARGIN
+    caught: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def watching(obs: Any) -> tuple[np.ndarray, np.ndarray]:
+        for b in np.flatnonzero(np.asarray(obs.t) == at)[: count - len(caught)]:
+            caught.append((obs.planes[b].copy(), obs.received[b].copy(), obs.state[b].copy()))
+        return policy(obs)
+
+    for _, env in seeded_episode_envs(task, episodes, seed):
+        for _ in play_first_episodes(env, watching):
+            pass
+        if len(caught) >= count:
+            break
+    return caught
+
+
+STALL_MARGIN = 6
+"""`--stalls` looks at an episode this many steps before the limit, well inside a cycle that never ends."""
+
+
+def print_stalls(controller: Any, stalls: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
+    """Each stalled episode's agents as they see it: cell, goal, bits arriving, move probabilities (stay, up, down,
+    left, right) and each sent bit's probability of being 1 (either head: the sum over the messages with that bit)."""
+    import torch
+
+    from bitcomm.channel.core import index_to_bits
+
+    task, net = controller.task, controller.policy
+    n, size, bits = task.env.n_agents, task.env.size, task.channel.bits
+    words = index_to_bits(torch.arange(1 << bits), bits).float()  # (2^K, K)
+    for planes, received, state in stalls:
+        with torch.no_grad():
+            move_logits, msg_logits = net(torch.from_numpy(planes).float(), torch.from_numpy(received))
+            head = net.head
+            p_bits = head.log_prob_of_terms(head.log_prob_terms(msg_logits)).exp() @ words  # (n, K)
+        moves = torch.softmax(move_logits, -1)
+        cells = state[:n].reshape(n, -1).argmax(-1), state[n : 2 * n].reshape(n, -1).argmax(-1)
+        print()
+        for a in range(n):
+            (r, c), (gr, gc) = divmod(int(cells[0][a]), size), divmod(int(cells[1][a]), size)
+            arriving = " ".join("".join(map(str, slot)) for slot in received[a].tolist())
+            print(f"agent {a}: at ({r}, {c}), goal ({gr}, {gc}), {abs(r - gr) + abs(c - gc)} cells off; bits arriving "
+                  f"{arriving}; moves {' '.join(f'{p:.2f}' for p in moves[a].tolist())}; "
+                  f"p(sent bit = 1) {' '.join(f'{p:.2f}' for p in p_bits[a].tolist())}")  # fmt: skip
+
+
 def print_split(run: str, episodes: int, seed: int) -> None:
     """The four-way table: sampled and greedy moves crossed with sampled and greedy bits."""
     from bitcomm.policies.agent_policies import BatchedPolicy
@@ -146,11 +205,14 @@ def main() -> None:
     ap.add_argument("--max-period", type=int, default=64, help="longest cycle looked for (default %(default)s)")
     ap.add_argument("--census-only", action="store_true", help="skip the four-way table (cheaper on large grids)")
     ap.add_argument("--detail", action="store_true", help="also list the census by kind of cycle")
+    ap.add_argument("--stalls", type=int, default=0, help="show this many stalled greedy episodes (default 0)")
     a = ap.parse_args()
     if a.episodes < 1:
         ap.error(f"--episodes {a.episodes}: must be >= 1")
     if a.max_period < 1:
         ap.error(f"--max-period {a.max_period}: must be >= 1")
+    if a.stalls < 0:
+        ap.error(f"--stalls {a.stalls}: must be >= 0")
     torch.set_num_threads(1)
     try:  # a missing or damaged run is one line, before anything is played
         controller = Controller.load(a.run, seed=a.seed)
@@ -162,6 +224,10 @@ def main() -> None:
     cut, census = cycle_census(greedy, controller.task, a.episodes, a.seed, a.max_period)
     print(f"\ngreedy episodes cut at the step limit: {cut} of {a.episodes}")
     print_census(census, a.max_period, a.detail)
+    if a.stalls:
+        stalls = stalled_inputs(greedy, controller.task, a.episodes, a.seed, a.stalls)
+        print(f"\n{len(stalls)} stalled greedy episode(s), {STALL_MARGIN} steps before the limit:")
+        print_stalls(controller, stalls)
 
 
 if __name__ == "__main__":

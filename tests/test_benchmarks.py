@@ -152,6 +152,22 @@ def test_greedy_split_plays_a_run_four_ways(tmp_path: Path) -> None:
     assert alone.returncode == 0, alone.stderr
     head, summary, detail = alone.stdout.split("\n\n")  # the count, the summary, one row per kind of cycle
     assert head.strip().endswith(f"{total[0]} of 20") and counted(summary, 2) == counted(detail, -1) == total[0]
+    argv = [sys.executable, "benchmarks/greedy_split.py", run, "--episodes", "20", "--census-only", "--stalls", "2"]
+    stalls = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)
+    assert stalls.returncode == 0, stalls.stderr
+    header = [line for line in stalls.stdout.splitlines() if "stalled greedy episode(s), 6 steps before" in line]
+    shown = int(header[0].split()[0])  # as many as asked for, where that many still run 6 steps before the limit
+    assert len(header) == 1 and min(2, total[0]) <= shown <= 2
+    agents = [line for line in stalls.stdout.splitlines() if line.startswith("agent ")]
+    assert len(agents) == 2 * shown  # two agents each
+    for line in agents:
+        p_bits = [float(x) for x in line.split("p(sent bit = 1) ")[1].split()]
+        moves = [float(x) for x in line.split("; moves ")[1].split(";")[0].split()]
+        assert len(p_bits) == 4 and all(0 <= p <= 1 for p in p_bits)  # K = 4
+        assert len(moves) == 5 and abs(sum(moves) - 1) <= 0.02
+    negative = subprocess.run([sys.executable, "benchmarks/greedy_split.py", run, "--stalls", "-1"], cwd=ROOT,
+                              capture_output=True, text=True, env=env, timeout=60)  # fmt: skip
+    assert negative.returncode == 2 and negative.stderr.strip().splitlines()[-1].endswith("--stalls -1: must be >= 0")
     missing = subprocess.run([sys.executable, "benchmarks/greedy_split.py", str(tmp_path / "nothing")], cwd=ROOT,
                              capture_output=True, text=True, env=env, timeout=60)  # fmt: skip
     assert missing.returncode == 2 and "Traceback" not in missing.stderr and missing.stdout == ""
