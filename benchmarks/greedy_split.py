@@ -90,27 +90,24 @@ def cycle_census(
     return cut, census
 
 
-def stalled_inputs(
-    policy: Callable[[Any], tuple[np.ndarray, np.ndarray]], task: Any, episodes: int, seed: int, count: int
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The first `count` episodes of the seeded set that greedy `policy` has not ended `STALL_MARGIN` steps before the
-    limit: each one's `(planes (n, 2, S, S), received (n, slots, K), state)` at that step."""
-    from bitcomm.policies.evaluation import play_first_episodes, seeded_episode_envs
-
+def watching_stalls(
+    policy: Callable[[Any], tuple[np.ndarray, np.ndarray]], task: Any, count: int
+) -> tuple[Callable[[Any], tuple[np.ndarray, np.ndarray]], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """`policy`, recording as it plays (in `cycle_census`, say) the inputs of the first `count` first episodes it has
+    not ended `STALL_MARGIN` steps before the limit: each one's `(planes (n, 2, S, S), received (n, slots, K), state)`
+    at that step. A first episode's step is the play's step, the largest `t` of any slot while one is still running;
+    a slot's later episodes are younger, so they are not taken."""
     at = task.env.max_steps - STALL_MARGIN
     caught: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
     def watching(obs: Any) -> tuple[np.ndarray, np.ndarray]:
-        for b in np.flatnonzero(np.asarray(obs.t) == at)[: count - len(caught)]:
-            caught.append((obs.planes[b].copy(), obs.received[b].copy(), obs.state[b].copy()))
+        t = np.asarray(obs.t)
+        if len(caught) < count and t.max() == at:
+            for b in np.flatnonzero(t == at)[: count - len(caught)]:
+                caught.append((obs.planes[b].copy(), obs.received[b].copy(), obs.state[b].copy()))
         return policy(obs)
 
-    for _, env in seeded_episode_envs(task, episodes, seed):
-        for _ in play_first_episodes(env, watching):
-            pass
-        if len(caught) >= count:
-            break
-    return caught
+    return watching, caught
 
 
 STALL_MARGIN = 6
@@ -220,12 +217,11 @@ def main() -> None:
         ap.error(str(err))
     if not a.census_only:
         print_split(a.run, a.episodes, a.seed)
-    greedy = BatchedPolicy(ControllerAgent(controller, greedy=True))
+    greedy, stalls = watching_stalls(BatchedPolicy(ControllerAgent(controller, greedy=True)), controller.task, a.stalls)
     cut, census = cycle_census(greedy, controller.task, a.episodes, a.seed, a.max_period)
     print(f"\ngreedy episodes cut at the step limit: {cut} of {a.episodes}")
     print_census(census, a.max_period, a.detail)
     if a.stalls:
-        stalls = stalled_inputs(greedy, controller.task, a.episodes, a.seed, a.stalls)
         print(f"\n{len(stalls)} stalled greedy episode(s), {STALL_MARGIN} steps before the limit:")
         print_stalls(controller, stalls)
 

@@ -243,18 +243,19 @@ class Learner:
         policy = self.policy
         valid = ro.valid[:, cols]
         it, ib = valid.nonzero(as_tuple=True)
-        received = ro.received[it, cols[ib]]  # (M, n, slots, K)
+        bc = cols[ib]  # each step's episode, as a column of the rollout
+        received = ro.received[it, bc]  # (M, n, slots, K)
         per_agent = received.flatten(0, 1)  # (M * n, slots, K)
         # the dense encoding only for a message map; the trunk reads the bits by the head's own product
         encoded = policy.encode_received(per_agent) if policy.message_map is not None else None
 
         def read_planes() -> torch.Tensor:  # only where a pass reads them: `read_features` reads them once if it can
-            return ro.planes[it, cols[ib]].flatten(0, 1)
+            return ro.planes[it, bc].flatten(0, 1)
 
         with update_precision(self.cfg.update_dtype):  # what the terms compute from these passes is float32
             planes = None
             if features is not None and features.policy is not None:
-                feats = features.policy[it, cols[ib]].flatten(0, 1)
+                feats = features.policy[it, bc].flatten(0, 1)
             else:
                 planes = read_planes()
                 feats = policy.observation_features(planes, encoded)

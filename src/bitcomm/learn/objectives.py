@@ -117,7 +117,7 @@ class StepBatch:
     def msg_log_prob_and_entropy(self) -> tuple[torch.Tensor, torch.Tensor]:
         """`(M * n,)` log Pm(m_t) of the sent messages and the entropy of Pm, computed together (one-hot: from
         one log-softmax, see `OneHotHead.log_prob_and_entropy`)."""
-        bits = self.ro.bits[self.it, self.cols[self.ib]].flatten(0, 1)
+        bits = self.ro.bits[self.at].flatten(0, 1)
         return self.policy.head.log_prob_and_entropy(self.msg_logits, bits)
 
     @functools.cached_property
@@ -136,7 +136,7 @@ class StepBatch:
     @functools.cached_property
     def goal(self) -> torch.Tensor:
         """`(M, n)` each agent's own goal cell at each step (privileged: auxiliary terms only)."""
-        return self.ro.goal[self.cols[self.ib]]
+        return self.ro.goal[self.at[1]]
 
 
 class Term(Protocol):
