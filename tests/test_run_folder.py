@@ -32,7 +32,9 @@ from bitcomm.checkpoint import (
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
-from bitcomm.learn.run_folder import machine, machine_label, run_machines
+from bitcomm.learn.config import make_train_config
+from bitcomm.learn.learner import Learner
+from bitcomm.learn.run_folder import learner_state, machine, machine_label, restore_learner, run_machines
 from bitcomm.run_lock import LOCK, run_lock
 
 TASK = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16"]
@@ -555,3 +557,25 @@ def test_compare_runs_hold_the_lock_and_refuse_a_tampered_latest(run: Path, tmp_
     (run / "config.json").write_text("[1]")
     with pytest.raises(ConfigError, match="config.json"):
         run_status(study_run)
+
+
+def test_an_older_checkpoint_s_optimizer_resumes_fused_with_its_moments() -> None:
+    """Checkpoints from before the fused Adam saved `fused: None` in each group; loading one must keep the
+    moments and the learning rate it holds but step the way this code builds its optimizers."""
+    cfg = make_train_config(task=TaskConfig(env=EnvConfig(size=4), channel=ChannelConfig(bits=4)))
+    old = Learner(cfg)
+    for opt in (old.opt_policy, old.opt_critic):
+        for p in (p for g in opt.param_groups for p in g["params"]):
+            p.grad = torch.ones_like(p)
+        opt.step()
+    saved = {"weights": {"policy": old.policy.state_dict(), "critic": old.critic.state_dict()}, **learner_state(old)}
+    for name in ("opt_policy", "opt_critic"):
+        for g in saved[name]["param_groups"]:
+            g.update(fused=None, lr=1.25e-3)
+    new = Learner(cfg)
+    restore_learner(new, saved)
+    for opt, before in ((new.opt_policy, old.opt_policy), (new.opt_critic, old.opt_critic)):
+        assert all(g["fused"] is True and g["lr"] == 1.25e-3 for g in opt.param_groups)
+        moments = [opt.state[p]["exp_avg"] for g in opt.param_groups for p in g["params"]]
+        expected = [before.state[p]["exp_avg"] for g in before.param_groups for p in g["params"]]
+        assert all(torch.equal(a, b) for a, b in zip(moments, expected, strict=True))

@@ -386,12 +386,25 @@ def checkpoint_weights(learner: Any) -> dict[str, dict[str, torch.Tensor]]:
     return weights
 
 
+# how an optimizer runs, not what it has learned: a checkpoint's values (older ones saved `fused` as None)
+# must not replace the ones this code builds its optimizer with
+_EXECUTION_FLAGS = ("fused", "foreach", "capturable", "differentiable")
+
+
+def load_optimizer(opt: torch.optim.Optimizer, state: dict[str, Any]) -> None:
+    """Moments, step counts and learning rates of a saved optimizer, run the way `opt` was built."""
+    flags = [{k: g[k] for k in _EXECUTION_FLAGS if k in g} for g in opt.param_groups]
+    opt.load_state_dict(state)
+    for group, kept in zip(opt.param_groups, flags, strict=True):
+        group.update(kept)
+
+
 def restore_learner(learner: Any, saved: dict[str, Any]) -> None:
     """Weights, code book and optimizer moments of a checkpoint's state into a fresh Learner."""
     for name, sd in saved["weights"].items():
         getattr(learner, name).load_state_dict(sd)
-    learner.opt_policy.load_state_dict(saved["opt_policy"])
-    learner.opt_critic.load_state_dict(saved["opt_critic"])
+    load_optimizer(learner.opt_policy, saved["opt_policy"])
+    load_optimizer(learner.opt_critic, saved["opt_critic"])
     if "move_decay_start" in saved:
         learner.move_decay.start = float(saved["move_decay_start"])
 
