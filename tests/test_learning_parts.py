@@ -286,6 +286,25 @@ def test_rollout_holds_whole_first_episodes():
     assert np.allclose(ro.rewards.masked_fill(~ro.valid, 0).sum(0).numpy(), ro.team_return, atol=1e-4)
 
 
+@pytest.mark.parametrize("messages", ["bitwise", "onehot"])
+def test_the_rollout_records_what_the_policy_did_at_every_step_of_a_first_episode(messages):
+    """The policy acts only for slots whose first episode is running; what it recorded at each valid step (the
+    log-probabilities of the move and the message it sampled) is what the network gives those very steps."""
+    small = TaskConfig(EnvConfig(size=3, max_steps=20), ChannelConfig(bits=3))  # random play often ends early
+    cfg = make_train_config("reinforced", small, num_envs=64, messages=messages)
+    learner = Learner(cfg)
+    collector = Collector(cfg.training_task, 64)
+    collector.collect(learner.policy, np.random.SeedSequence(2), torch.Generator())  # its buffers are reused
+    ro = collector.collect(learner.policy, np.random.SeedSequence(3), torch.Generator())
+    assert len(set(ro.length.tolist())) > 3  # first episodes end at many different steps
+    with torch.no_grad():
+        logp_move, logp_message = learner.log_probs(ro)
+    valid = ro.valid
+    assert torch.allclose(logp_move[valid], ro.logp_move[valid], atol=1e-5)
+    assert torch.allclose(logp_message[valid], ro.logp_message[valid], atol=1e-5)
+    assert (ro.moves[~valid] == 0).all() and (ro.bits[~valid] == 0).all()  # an ended slot stands still, silent
+
+
 def test_training_episodes_are_truncated_at_train_max_steps_but_the_task_is_not():
     cfg = make_train_config("reinforced", TINY, num_envs=16, train_max_steps=3)
     assert cfg.training_task.env.max_steps == 3 and cfg.task.env.max_steps == 20
@@ -432,14 +451,14 @@ def test_the_policy_gradient_term_reads_its_minibatch_s_own_steps(clip):
 @pytest.mark.parametrize("estimator", ["standard", "improved"])
 def test_reading_the_observations_once_per_update_makes_the_same_update(encoder, estimator, monkeypatch):
     """The parameter-free encoders are read once per batch (`Learner.read_features`): a speed-up, not a change."""
-    from bitcomm.learn import learner as learner_module
 
     def trained(read_once: bool) -> list[torch.Tensor]:
         torch.manual_seed(0)
         cfg = make_train_config("reinforced", TINY, num_envs=8, encoder=encoder, estimator=estimator)
         learner = Learner(cfg)
-        if not read_once:
-            monkeypatch.setattr(learner, "read_features", lambda ro: learner_module.BatchFeatures(None, None))
+        if not read_once:  # each pass reads the planes itself
+            monkeypatch.setattr(learner, "_policy_features", lambda ro: None)
+            monkeypatch.setattr(learner, "_critic_features", lambda ro: None)
         generator = torch.Generator().manual_seed(0)
         learner.update(Collector(TINY, 8).collect(learner.policy, np.random.SeedSequence(0), generator), generator)
         return [p.detach().clone() for p in [*learner.policy.parameters(), *learner.critic.parameters()]]

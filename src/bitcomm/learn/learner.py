@@ -171,23 +171,31 @@ class Learner:
                 values.append(self._values(state_feats, moves, received, *self._message_queries()))
         return critic_mse(torch.cat(values, 1).float(), returns[it, ib])
 
-    @torch.no_grad()
     def read_features(self, ro: Rollout) -> BatchFeatures:
         """The parameter-free part of both networks' reading of `ro`, for every pass of one update."""
+        return BatchFeatures(self._policy_features(ro), self._critic_features(ro))
+
+    @torch.no_grad()
+    def _policy_features(self, ro: Rollout) -> torch.Tensor | None:
+        if not self.policy.fixed_features:
+            return None
         it, ib = ro.valid.nonzero(as_tuple=True)
+        flat = self.policy.observation_features(ro.planes[it, ib].flatten(0, 1), None)
+        return _spread(flat.view(it.shape[0], self.n, -1), ro.valid, it, ib)
 
-        def spread(x: torch.Tensor) -> torch.Tensor:  # (M, ...) at the valid steps -> (T, B, ...)
-            out = x.new_zeros(*ro.valid.shape, *x.shape[1:])
-            out[it, ib] = x
-            return out
+    @torch.no_grad()
+    def _critic_features(self, ro: Rollout) -> torch.Tensor | None:
+        if not self.critic.fixed_features:
+            return None
+        it, ib = ro.valid.nonzero(as_tuple=True)
+        return _spread(self.critic.state_features(ro.state[it, ib]), ro.valid, it, ib)
 
-        policy = critic = None
-        if self.policy.fixed_features:
-            flat = self.policy.observation_features(ro.planes[it, ib].flatten(0, 1), None)
-            policy = spread(flat.view(it.shape[0], self.n, -1))
-        if self.critic.fixed_features:
-            critic = spread(self.critic.state_features(ro.state[it, ib]))
-        return BatchFeatures(policy, critic)
+    def _critic_side(self, ro: Rollout) -> tuple[torch.Tensor | None, Advantages]:
+        """The critic's features of `ro` and the advantages from its baselines: what an update needs before its
+        first step that the policy's features do not (so a helper thread can read it meanwhile)."""
+        with torch.no_grad():  # grad mode is per thread
+            critic = self._critic_features(ro)
+            return critic, self.advantages(ro, BatchFeatures(None, critic))
 
     # ---------------------------------------------------------------- update
     @property
@@ -212,8 +220,10 @@ class Learner:
             for opt, bases in zip((self.opt_policy, self.opt_critic), self.base_lrs, strict=True):
                 for group, base in zip(opt.param_groups, bases, strict=True):
                     group["lr"] = base * max(0.0, 1.0 - progress)
-        features = self.read_features(ro)
-        adv = self.advantages(ro, features)
+        critic_side = start(self.helper, lambda: self._critic_side(ro))  # beside the policy's features
+        policy_features = self._policy_features(ro)
+        critic_features, adv = critic_side()
+        features = BatchFeatures(policy_features, critic_features)
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
         clip_scales: list[float] | None = None  # measured on the update's first step, then reused
@@ -332,6 +342,13 @@ class Learner:
             p.grad = g
         opt.step()
         return scales
+
+
+def _spread(x: torch.Tensor, valid: torch.Tensor, it: torch.Tensor, ib: torch.Tensor) -> torch.Tensor:
+    """`(M, ...)` values at the valid steps `(it, ib)` -> `(T, B, ...)`, 0 elsewhere."""
+    out = x.new_zeros(*valid.shape, *x.shape[1:])
+    out[it, ib] = x
+    return out
 
 
 def scaled(a: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

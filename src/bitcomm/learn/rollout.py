@@ -73,18 +73,27 @@ class Collector:
         B = self.num_envs
         length, team_return, success = np.zeros(B, np.int64), np.zeros(B), np.zeros(B, bool)
         t = 0
+        running = np.ones(B, dtype=bool)  # slots whose first episode has not ended: the only ones the policy plays
 
         def policy(obs: Observation) -> tuple[np.ndarray, np.ndarray]:
             self.planes[t], self.received[t], self.state[t] = obs.planes, obs.received, obs.state
+            # late in training most first episodes end long before the batch's last one: a slot's later
+            # episodes are never learned from, so they are not acted for (they stand still, silent)
+            rows = slice(None) if running.all() else np.flatnonzero(running)
             moves, bits, lp_move, lp_msg = act(
                 net,
-                torch.from_numpy(self.planes[t]).flatten(0, 1),
-                torch.from_numpy(self.received[t]).flatten(0, 1),
+                torch.from_numpy(self.planes[t][rows]).flatten(0, 1),
+                torch.from_numpy(self.received[t][rows]).flatten(0, 1),
                 generator=generator,
             )
-            self.moves[t] = moves.view(B, -1).numpy()
-            self.bits[t] = bits.view(B, -1, bits.shape[-1]).numpy()
-            self.logp[0, t], self.logp[1, t] = lp_move.view(B, -1).numpy(), lp_msg.view(B, -1).numpy()
+            for buffer, x in zip(
+                (self.moves[t], self.bits[t], self.logp[0, t], self.logp[1, t]),
+                (moves, bits, lp_move, lp_msg),
+                strict=True,
+            ):
+                if isinstance(rows, np.ndarray):
+                    buffer.fill(0)
+                buffer[rows] = x.view(-1, *buffer.shape[1:]).numpy()
             return self.moves[t], self.bits[t]
 
         for step in play_first_episodes(env, policy):
@@ -96,6 +105,7 @@ class Collector:
             first = step.active[fin.env_index]
             idx = fin.env_index[first]
             self.done[t, idx] = True
+            running[idx] = False
             length[idx], team_return[idx], success[idx] = fin.length[first], fin.team_return[first], fin.success[first]
             t += 1
 
