@@ -193,3 +193,39 @@ def test_the_supervised_recipe_reaches_the_message_head_without_advantages() -> 
     grads = policy_gradients_after_one_step("supervised", zero_advantages=True)
     assert grads["message_logits.weight"].abs().sum() > 0
     assert not make_train_config("supervised").pure
+
+
+def test_greedy_senders_send_their_most_likely_message_and_teach_the_message_head_nothing() -> None:
+    """`greedy_senders`: in the batch's first columns every sender sends its most likely bits (moves sampled), and
+    those messages get no advantage, so the message head learns from sampled messages alone; the receivers' moves in
+    those episodes keep theirs. With every column greedy and no entropy weight, the message head gets no gradient
+    and the movement head does."""
+    torch.manual_seed(0)
+    cfg = make_train_config("reinforced", TWO, num_envs=8, **dict.fromkeys(ENTROPY_WEIGHTS, 0.0))
+    learner = Learner(cfg)
+    collector = Collector(TWO, 8)
+    ro = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0), 3)
+    assert ro.sent_greedy.tolist() == [True] * 3 + [False] * 5
+    it, ib = ro.valid.nonzero(as_tuple=True)
+    with torch.no_grad():
+        _, logits = learner.policy(ro.planes[it, ib].flatten(0, 1), ro.received[it, ib].flatten(0, 1))
+    mode = learner.policy.head.mode(logits).view(it.shape[0], -1, BITS)
+    greedy = ro.sent_greedy[ib]
+    assert torch.equal(ro.bits[it, ib][greedy], mode[greedy])
+    assert not torch.equal(ro.bits[it, ib][~greedy], mode[~greedy])  # the others are samples
+    adv, plain = learner.advantages(ro), learner.advantages(ro._replace(sent_greedy=torch.zeros(8, dtype=torch.bool)))
+    assert (adv.message[:, :3] == 0).all() and torch.equal(adv.message[:, 3:], plain.message[:, 3:])
+    assert torch.equal(adv.action, plain.action) and adv.action[:, :3].abs().sum() > 0
+
+    every = collector.collect(learner.policy, np.random.SeedSequence(1), torch.Generator().manual_seed(1), 8)
+    learner._step(every, learner.advantages(every), torch.arange(8), None)
+    grads = {name: p.grad for name, p in learner.policy.named_parameters()}
+    assert grads["message_logits.weight"] is None or torch.count_nonzero(grads["message_logits.weight"]) == 0
+    assert grads["move_logits.weight"].abs().sum() > 0
+    assert make_train_config("reinforced", greedy_senders=0.5).pure
+
+
+def test_greedy_senders_start_at_their_point_of_the_schedule() -> None:
+    cfg = make_train_config("reinforced", TWO, num_envs=8, episodes=1000, greedy_senders=0.25, greedy_senders_from=0.5)
+    assert [cfg.greedy_sender_episodes(e) for e in (0, 499, 500, 1000)] == [0, 0, 2, 2]
+    assert make_train_config("reinforced", TWO).greedy_sender_episodes(10**9) == 0

@@ -140,6 +140,14 @@ class TrainConfig:
     (0: from the first episode). Where the protocol forms late in the budget (32x32), a decay from the start slows
     it; at 10x10 the decay from the start is the better one (docs/tuning.md session 23). Sync mode only, where one
     learner sees the rolling length."""
+    greedy_senders: float = 0.0
+    """Fraction of each batch's episodes in which every sender sends its most likely message (moves still sampled),
+    from `greedy_senders_from` of the schedule on (off: 0). Those episodes' message advantages are zero, so the
+    message head learns from sampled messages alone, while the receivers also learn to act on the words greedy play
+    sends; every gradient still comes from the estimator's term, so a run stays pure. The episodes are the first
+    columns of the batch. Sync mode on the local backend (docs/tuning.md session 34)."""
+    greedy_senders_from: float = 0.5
+    """The schedule's progress (0 to 1) from which `greedy_senders` plays its episodes."""
     anneal_episodes: int = 0
     """Episodes over which the schedules (`anneal_lr`, `anneal_entropy`, `anneal_move_entropy`) decay (0: the
     budget, `episodes`): a run trained in pieces (each resumed with a larger budget, as benchmarks/solve.py does)
@@ -205,6 +213,7 @@ class TrainConfig:
             raise bad_value(
                 "held-out-every", self.held_out_every, "acts only in sync mode on the local backend; leave it at 0"
             )
+        self._check_greedy_senders()
         for name in (
             "workers",
             "episodes",
@@ -241,6 +250,26 @@ class TrainConfig:
                 self.channel_noise,
                 "acts only where the goal loss reaches the sender (goal-coef > 0 with --no-message-map); leave it at 1",
             )
+
+    def _check_greedy_senders(self) -> None:
+        for name in ("greedy_senders", "greedy_senders_from"):
+            value = getattr(self, name)
+            if not (is_number(value) and 0.0 <= value <= 1.0):
+                raise bad_value(name.replace("_", "-"), value, "must be in [0, 1]")
+        if self.greedy_senders_from != 0.5 and not self.greedy_senders:
+            raise bad_value(
+                "greedy-senders-from", self.greedy_senders_from, "acts only with --greedy-senders > 0; leave it at 0.5"
+            )
+        if self.greedy_senders and (self.mode != "sync" or self.backend != "local"):
+            raise bad_value(
+                "greedy-senders", self.greedy_senders, "acts only in sync mode on the local backend; leave it at 0"
+            )
+
+    def greedy_sender_episodes(self, episodes: int) -> int:
+        """How many of the next batch's episodes (its first columns) `greedy_senders` plays, `episodes` played."""
+        if not self.greedy_senders or self.schedule_progress(episodes) < self.greedy_senders_from:
+            return 0
+        return round(self.greedy_senders * self.num_envs)
 
     def _check_move_decay_below(self) -> None:
         """`move_decay_below` set: it needs a move decay to start, the sync trainer's rolling length, and the oracle."""

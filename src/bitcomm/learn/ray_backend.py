@@ -57,7 +57,7 @@ MAX_FAILURES = 3
 that cannot start one: bitcomm or a dependency missing there) instead of being replaced forever."""
 SAMPLE_KEY = 1 << 31
 """Batch k samples moves and bits with `SeedSequence(seed, (SAMPLE_KEY, k))`, apart from its episodes' seeds."""
-EPISODE_FIELDS = ("length", "team_return", "success", "goal")
+EPISODE_FIELDS = ("length", "team_return", "success", "goal", "sent_greedy")
 """Rollout fields indexed by episode only; the others are time-major `(T, B, ...)`."""
 
 

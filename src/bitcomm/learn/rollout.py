@@ -44,6 +44,7 @@ class Rollout(NamedTuple):
     done: torch.Tensor  # (T, B) bool, the episode ended after this step
     valid: torch.Tensor  # (T, B) bool
     goal: torch.Tensor  # (B, n) int64, each agent's own goal cell (privileged: training-time only)
+    sent_greedy: torch.Tensor  # (B,) bool, every sender sent its most likely message (TrainConfig.greedy_senders)
     length: np.ndarray  # (B,) episode lengths
     team_return: np.ndarray  # (B,)
     success: np.ndarray  # (B,)
@@ -67,24 +68,30 @@ class Collector:
         self.done = np.zeros((T, B), dtype=bool)
         self.valid = np.zeros((T, B), dtype=bool)
 
-    def collect(self, net: PolicyNet, seed: np.random.SeedSequence, generator: torch.Generator) -> Rollout:
+    def collect(
+        self, net: PolicyNet, seed: np.random.SeedSequence, generator: torch.Generator, greedy_senders: int = 0
+    ) -> Rollout:
+        """B first episodes; in the first `greedy_senders` of them every sender sends its most likely message."""
         env = VecGoalExchange(self.task, self.num_envs, seed=seed)
         goal = env.core.goal.copy()
         B = self.num_envs
         length, team_return, success = np.zeros(B, np.int64), np.zeros(B), np.zeros(B, bool)
         t = 0
         running = np.ones(B, dtype=bool)  # slots whose first episode has not ended: the only ones the policy plays
+        sent_greedy = torch.arange(B) < greedy_senders
 
         def policy(obs: Observation) -> tuple[np.ndarray, np.ndarray]:
             self.planes[t], self.received[t], self.state[t] = obs.planes, obs.received, obs.state
             # late in training most first episodes end long before the batch's last one: a slot's later
             # episodes are never learned from, so they are not acted for (they stand still, silent)
             rows = slice(None) if running.all() else np.flatnonzero(running)
+            greedy = sent_greedy[rows].repeat_interleave(self.task.env.n_agents) if greedy_senders else None
             moves, bits, lp_move, lp_msg = act(
                 net,
                 torch.from_numpy(self.planes[t][rows]).flatten(0, 1),
                 torch.from_numpy(self.received[t][rows]).flatten(0, 1),
                 generator=generator,
+                greedy_messages=greedy,
             )
             for buffer, x in zip(
                 (self.moves[t], self.bits[t], self.logp[0, t], self.logp[1, t]),
@@ -115,6 +122,6 @@ class Collector:
         return Rollout(
             view(self.planes), view(self.received), view(self.state), view(self.moves), view(self.bits),
             torch.from_numpy(self.logp[0, :t]), torch.from_numpy(self.logp[1, :t]), view(self.dropped),
-            view(self.rewards), view(self.done), view(self.valid), torch.from_numpy(goal),
+            view(self.rewards), view(self.done), view(self.valid), torch.from_numpy(goal), sent_greedy,
             length, team_return, success,
         )  # fmt: skip

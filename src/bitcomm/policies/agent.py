@@ -17,10 +17,12 @@ def act(
     received: torch.Tensor,
     greedy: bool = False,
     generator: torch.Generator | None = None,
+    greedy_messages: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Moves `(N,)`, bits `(N, K)` and their log-probabilities for `(N, 2, S, S)` planes and `(N, slots, K)` bits.
 
-    Sampling (the default) is how the policy was trained; `greedy` takes the most likely move and message.
+    Sampling (the default) is how the policy was trained; `greedy` takes the most likely move and message;
+    `greedy_messages (N,)` bool, the most likely message of those rows only (their moves sampled).
     """
     move_logits, message_logits = net(planes, received)
     if greedy:
@@ -28,6 +30,8 @@ def act(
     else:
         moves = torch.multinomial(torch.softmax(move_logits, -1), 1, generator=generator)[:, 0]
         bits = net.head.sample(message_logits, generator)
+        if greedy_messages is not None:
+            bits = torch.where(greedy_messages[:, None], net.head.mode(message_logits), bits)
     logp_move = torch.log_softmax(move_logits, -1).gather(-1, moves[:, None])[:, 0]
     return moves, bits, logp_move, net.head.log_prob(message_logits, bits)
 
