@@ -33,12 +33,17 @@ def test_a_bfloat16_update_moves_the_weights_as_the_float32_one_does(estimator):
     torch.manual_seed(0)
     start = {k: v.clone() for k, v in Learner(before).policy.state_dict().items()}
     (full, full_stats), (half, half_stats) = one_update("float32", estimator), one_update("bfloat16", estimator)
+    steps: list[tuple[torch.Tensor, torch.Tensor]] = []
     for name, w in half.policy.state_dict().items():
         assert w.dtype == torch.float32
         step_full, step_half = full.policy.state_dict()[name] - start[name], w - start[name]
-        if step_full.abs().max() > 0:  # the same direction, to bfloat16's precision
-            cos = torch.nn.functional.cosine_similarity(step_full.flatten(), step_half.flatten(), 0)
-            assert cos > 0.9, name
+        if step_full.abs().max() > 0:
+            steps.append((step_full.flatten(), step_half.flatten()))
+            if w.dim() >= 2:  # each weight matrix moves the same way, to bfloat16's precision (a bias of a few
+                # entries with gradients near zero may take Adam's full steps either way on a rounding)
+                assert torch.nn.functional.cosine_similarity(*steps[-1], 0) > 0.9, name
+    whole = [torch.cat(parts) for parts in zip(*steps, strict=True)]
+    assert torch.nn.functional.cosine_similarity(*whole, 0) > 0.95  # and so does the policy as a whole
     assert all(p.dtype == torch.float32 for p in half.critic.parameters())
     assert half_stats["losses/value"] == pytest.approx(full_stats["losses/value"], rel=0.05)
 
