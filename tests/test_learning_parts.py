@@ -10,7 +10,7 @@ from bitcomm.channel.core import bits_to_index
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import make_train_config
-from bitcomm.learn.learner import Learner
+from bitcomm.learn.learner import BatchFeatures, Learner
 from bitcomm.learn.move_decay import MoveDecay
 from bitcomm.learn.rollout import Collector
 from bitcomm.learn.run_folder import oracle_level
@@ -434,7 +434,11 @@ def test_the_policy_gradient_term_reads_its_minibatch_s_own_steps(clip):
     adv = learner.advantages(ro)
     cols = torch.tensor([5, 2, 7])
     with torch.no_grad():
-        batch = learner._batch(ro, learner._forward(ro, cols, learner.read_features(ro)), adv)
+        batch = learner._batch(
+            ro,
+            learner._forward(ro, cols, BatchFeatures(learner._policy_features(ro), learner._critic_features(ro))),
+            adv,
+        )
         loss, _ = PolicyGradient(clip)(batch)
         logp_move, logp_message = batch.step_log_probs
     valid = ro.valid[:, cols]
@@ -450,7 +454,8 @@ def test_the_policy_gradient_term_reads_its_minibatch_s_own_steps(clip):
 @pytest.mark.parametrize("encoder", ["conv", "marginals", "cells"])
 @pytest.mark.parametrize("estimator", ["standard", "improved"])
 def test_reading_the_observations_once_per_update_makes_the_same_update(encoder, estimator, monkeypatch):
-    """The parameter-free encoders are read once per batch (`Learner.read_features`): a speed-up, not a change."""
+    """The parameter-free encoders are read once per batch (`Learner._policy_features`, `_critic_features`): a
+    speed-up, not a change."""
 
     def trained(read_once: bool) -> list[torch.Tensor]:
         torch.manual_seed(0)

@@ -171,12 +171,9 @@ class Learner:
                 values.append(self._values(state_feats, moves, received, *self._message_queries()))
         return critic_mse(torch.cat(values, 1).float(), returns[it, ib])
 
-    def read_features(self, ro: Rollout) -> BatchFeatures:
-        """The parameter-free part of both networks' reading of `ro`, for every pass of one update."""
-        return BatchFeatures(self._policy_features(ro), self._critic_features(ro))
-
     @torch.no_grad()
     def _policy_features(self, ro: Rollout) -> torch.Tensor | None:
+        """The parameter-free part of the policy's reading of `ro` (`BatchFeatures.policy`), for every pass."""
         if not self.policy.fixed_features:
             return None
         it, ib = ro.valid.nonzero(as_tuple=True)
@@ -262,7 +259,7 @@ class Learner:
         # the dense encoding only for a message map; the trunk reads the bits by the head's own product
         encoded = policy.encode_received(per_agent) if policy.message_map is not None else None
 
-        def read_planes() -> torch.Tensor:  # only where a pass reads them: `read_features` reads them once if it can
+        def read_planes() -> torch.Tensor:  # only where a pass reads them: `_policy_features` reads them once if it can
             return ro.planes[it, bc].flatten(0, 1)
 
         with update_precision(self.cfg.update_dtype):  # what the terms compute from these passes is float32
