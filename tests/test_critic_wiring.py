@@ -9,17 +9,21 @@ produces baselines that differ from the ones the spec names, and these tests fai
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 from torch import nn
 
 from bitcomm.channel.core import bits_to_index
+from bitcomm.checkpoint import load_weights
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.learn.config import ENTROPY_WEIGHTS, make_train_config
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
 from bitcomm.learn.learner import Learner
 from bitcomm.learn.rollout import Collector, Rollout
+from bitcomm.learn.run import train
 
 BITS = 2
 TWO = TaskConfig(EnvConfig(size=4, max_steps=12), ChannelConfig(bits=BITS))
@@ -178,14 +182,16 @@ def test_sharpening_reaches_its_own_head_alone(option: str, head: str, other: st
     assert make_train_config("reinforced", **{option: 0.03}).pure
 
 
-def test_a_message_head_of_its_own_is_taught_by_the_estimators_alone() -> None:
-    """`message_reads="observed"` gives the message head layers of its own: pure as the default, they move
-    only with advantages, and then they do."""
-    silent = policy_gradients_after_one_step("reinforced", zero_advantages=True, message_reads="observed")
+@pytest.mark.parametrize("reads", ["observed", "all"])
+def test_either_message_head_is_taught_by_the_estimators_alone(reads: str) -> None:
+    """`message_reads` `observed` (the recipe's) gives the message head layers of its own, `all` (the paper's
+    Fig. 2) reads the layers the move head reads: either way the policy moves only with advantages, and then does."""
+    silent = policy_gradients_after_one_step("reinforced", zero_advantages=True, message_reads=reads)
     assert all(torch.count_nonzero(g) == 0 for g in silent.values()), [n for n, g in silent.items() if g.any()]
-    moved = policy_gradients_after_one_step("reinforced", zero_advantages=False, message_reads="observed")
-    assert moved["message_trunk.0.weight"].abs().sum() > 0 and moved["message_logits.weight"].abs().sum() > 0
-    assert make_train_config("reinforced", message_reads="observed").pure
+    moved = policy_gradients_after_one_step("reinforced", zero_advantages=False, message_reads=reads)
+    assert moved["message_logits.weight"].abs().sum() > 0
+    assert ("message_trunk.0.weight" in moved) == (reads == "observed")
+    assert make_train_config("reinforced", message_reads=reads).pure
 
 
 def test_the_supervised_recipe_reaches_the_message_head_without_advantages() -> None:
@@ -228,4 +234,24 @@ def test_greedy_senders_send_their_most_likely_message_and_teach_the_message_hea
 def test_greedy_senders_start_at_their_point_of_the_schedule() -> None:
     cfg = make_train_config("reinforced", TWO, num_envs=8, episodes=1000, greedy_senders=0.25, greedy_senders_from=0.5)
     assert [cfg.greedy_sender_episodes(e) for e in (0, 499, 500, 1000)] == [0, 0, 2, 2]
-    assert make_train_config("reinforced", TWO).greedy_sender_episodes(10**9) == 0
+    assert make_train_config("reinforced", TWO, greedy_senders=0.0).greedy_sender_episodes(10**9) == 0
+    default = make_train_config("reinforced", TWO, episodes=1000)  # the recipe's: half of each batch from halfway
+    assert [default.greedy_sender_episodes(e) for e in (499, 500)] == [0, default.num_envs // 2]
+    assert make_train_config("paper", TWO).greedy_senders == make_train_config("supervised", TWO).greedy_senders == 0
+
+
+@pytest.mark.parametrize("mode", ["sync", "a3c"])
+def test_every_trainer_plays_the_greedy_senders_of_its_schedule(mode: str, tmp_path: Path) -> None:
+    """With every sender greedy from the first batch and no entropy weight, a whole run leaves the message head as
+    it began and trains the moves: the sync trainer and the a3c workers both hand the collector the schedule's
+    greedy episodes (Ray's actors: tests/test_ray.py)."""
+    cfg = make_train_config(
+        "reinforced", TWO, num_envs=8, episodes=32, mode=mode, workers=2, checkpoint_seconds=1e9,
+        greedy_senders=1.0, greedy_senders_from=0.0, **dict.fromkeys(ENTROPY_WEIGHTS, 0.0),
+    )  # fmt: skip
+    torch.manual_seed(cfg.seed)
+    start = Learner(cfg).policy.state_dict()
+    end = load_weights(train(cfg, tmp_path, progress=False))[0]["policy"]
+    message = [k for k in start if k.startswith(("message_trunk", "message_logits"))]
+    assert message and all(torch.equal(start[k], end[k]) for k in message)
+    assert not torch.equal(start["move_logits.weight"], end["move_logits.weight"])

@@ -137,6 +137,18 @@ def test_async_keeps_its_staleness_bound_and_runs_move_between_local_and_ray(clu
     assert [int(x["episodes"]) for x in rows(out)][-3:] == [192, 208, 224]
 
 
+def test_a_rollout_actor_plays_the_greedy_senders_of_its_batch_s_place_in_the_schedule() -> None:
+    """Batch k of a run follows k full batches (`k * num_envs` episodes), so an actor knows from k alone how many
+    of its episodes send the most likely message (`greedy_senders`), as the local trainer does."""
+    from bitcomm.learn.ray_backend import RolloutWorker
+
+    cfg = tiny_config(episodes=1000, num_envs=8, greedy_senders=0.25, greedy_senders_from=0.5)
+    worker = RolloutWorker(cfg.to_dict())
+    weights = {k: v.numpy() for k, v in worker.policy.state_dict().items()}
+    before, after = (worker.collect(weights, 0, batch)["rollout"]["sent_greedy"] for batch in (62, 63))
+    assert before.tolist() == [False] * 8 and after.tolist() == [True] * 2 + [False] * 6
+
+
 def test_joined_batches_keep_each_episode_and_pad_time_with_invalid_steps() -> None:
     import numpy as np
 

@@ -153,7 +153,8 @@ def _worker(
             # sync, rollout, update
             pull(local, remote)
             with flush_denormals():
-                ro = collector.collect(learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(k,)), generator)
+                seed = np.random.SeedSequence(cfg.seed, spawn_key=(k,))
+                ro = collector.collect(learner.policy, seed, generator, cfg.greedy_sender_episodes(claimed_before))
                 stats = learner.update(ro, generator, progress=cfg.schedule_progress(claimed_before))
             results.put(("batch", w, ro.length.copy(), ro.team_return.copy(), ro.success.copy(), stats))
         results.put(("done", w))

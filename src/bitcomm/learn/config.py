@@ -145,10 +145,11 @@ class TrainConfig:
     from `greedy_senders_from` of the schedule on (off: 0). Those episodes' message advantages are zero, so the
     message head learns from sampled messages alone, while the receivers also learn to act on the words greedy play
     sends; every gradient still comes from the estimator's term, so a run stays pure. The episodes are the first
-    columns of the batch. Sync mode on the local backend. With `message_reads` `observed` (one word distribution per
-    goal) 0.5 from halfway brought greedy play within 1.05x of the oracle on 11 of 16 seeds of the paper's task and
-    within 1.10x on all (the default: about one in four, worst 1.3-1.8x); with the default's head it changes little
-    (docs/tuning.md session 34). Off, as the studies were made without it."""
+    columns of the batch (in `a3c` mode and on Ray, of each worker's batch, by the episodes played before it). With
+    `message_reads` `observed` (one word distribution per goal) 0.5 from halfway brought greedy play within 1.05x of
+    the oracle on 11 of 16 seeds of the paper's task and within 1.10x on all (the head that reads everything, without
+    it: about one in four, worst 1.3-1.8x); with that head it changes little (docs/tuning.md session 34). On (0.5) in
+    the `reinforced` recipe since session 35."""
     greedy_senders_from: float = 0.5
     """The schedule's progress (0 to 1) from which `greedy_senders` plays its episodes."""
     anneal_episodes: int = 0
@@ -262,10 +263,6 @@ class TrainConfig:
         if self.greedy_senders_from != 0.5 and not self.greedy_senders:
             raise bad_value(
                 "greedy-senders-from", self.greedy_senders_from, "acts only with --greedy-senders > 0; leave it at 0.5"
-            )
-        if self.greedy_senders and (self.mode != "sync" or self.backend != "local"):
-            raise bad_value(
-                "greedy-senders", self.greedy_senders, "acts only in sync mode on the local backend; leave it at 0"
             )
 
     def greedy_sender_episodes(self, episodes: int) -> int:

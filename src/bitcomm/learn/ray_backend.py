@@ -86,7 +86,8 @@ class RolloutWorker:
         generator = torch.Generator().manual_seed(sample_seed(self.cfg.seed, batch))
         seed = np.random.SeedSequence(self.cfg.seed, spawn_key=(batch,))
         with flush_denormals():
-            ro = self.collector.collect(self.policy, seed, generator)
+            greedy = self.cfg.greedy_sender_episodes(batch * self.cfg.num_envs)  # batches before it: full ones
+            ro = self.collector.collect(self.policy, seed, generator, greedy)
         arrays = {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in ro._asdict().items()}
         return {"batch": batch, "version": version, "collect_s": time.perf_counter() - t0, "rollout": arrays}
 

@@ -12,7 +12,10 @@ Plain data with no heavy imports, so the command line can list the names without
   per-message entropy bonus one on the batch's average message distribution
   (`entropy_message_marginal`, session 18), which keeps two goals from sharing a code, and the move
   regularisers decayed to zero with the rates (`anneal_move_entropy`, session 19), so that greedy
-  moves end as good as sampled ones (each option named and measured in docs/tuning.md).
+  moves end as good as sampled ones; since session 35 a message head that reads only the goal the
+  sender observes (`message_reads` `observed`, session 28) and, from halfway, half of each batch played
+  with every sender's most likely message (`greedy_senders`, session 34), so that greedy play sends
+  the words the receivers learned (each option named and measured in docs/tuning.md).
 - `supervised`: `reinforced` plus three auxiliary losses that hand the sender a protocol (a
   self-labelled code book, a privileged goal label for the receiver's message decoder, and the
   sender's grounding in the goal it sees). Fast, but its messages are supervised: it bypasses both
@@ -49,6 +52,8 @@ _REINFORCED: dict[str, Any] = dict(
     message_map=False,
     anneal_lr=True,
     anneal_move_entropy=True,
+    message_reads="observed",
+    greedy_senders=0.5,
 )
 
 _SUPERVISED: dict[str, Any] = dict(
@@ -66,6 +71,8 @@ _SUPERVISED: dict[str, Any] = dict(
     message_map=True,
     anneal_lr=False,
     anneal_move_entropy=False,
+    message_reads="all",
+    greedy_senders=0.0,
 )
 """The former `fast` recipe, as measured in docs/tuning.md sessions 1-7."""
 
@@ -94,6 +101,8 @@ RECIPES: dict[str, dict[str, Any]] = {
         coords=False,
         plane_coords=False,
         message_map=False,
+        message_reads="all",
+        greedy_senders=0.0,
     ),
 }
 """Each recipe's values for the learning options; any option given explicitly overrides them. Every recipe names
