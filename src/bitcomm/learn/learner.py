@@ -32,8 +32,9 @@ from bitcomm.policies.networks import CriticNet, PolicyNet
 class BatchFeatures(NamedTuple):
     """The networks' reading of a batch's observations where it has no parameters (`fixed_features`: every
     encoder but `conv`), computed once per update instead of once per pass: the 4 epochs of the default recipe
-    would otherwise sum the same planes 9 times. `policy (T, B, n, flat)`, `critic (T, B, flat)`, 0 at invalid
-    steps; None for a network whose encoder learns."""
+    would otherwise sum the same planes 9 times. `policy (T, B, n, flat)` (with a message head of its own, its
+    `observed_features` after the trunk's `features_width` columns), `critic (T, B, flat)`, 0 at invalid steps; None
+    for a network whose encoder learns."""
 
     policy: torch.Tensor | None
     critic: torch.Tensor | None
@@ -177,7 +178,10 @@ class Learner:
         if not self.policy.fixed_features:
             return None
         it, ib = ro.valid.nonzero(as_tuple=True)
-        flat = self.policy.observation_features(ro.planes[it, ib].flatten(0, 1), None)
+        planes = ro.planes[it, ib].flatten(0, 1)
+        flat = self.policy.observation_features(planes, None)
+        if self.policy.message_trunk is not None:
+            flat = torch.cat([flat, self.policy.observed_features(planes)], 1)
         return _spread(flat.view(it.shape[0], self.n, -1), ro.valid, it, ib)
 
     @torch.no_grad()
@@ -259,20 +263,18 @@ class Learner:
         # the dense encoding only for a message map; the trunk reads the bits by the head's own product
         encoded = policy.encode_received(per_agent) if policy.message_map is not None else None
 
-        def read_planes() -> torch.Tensor:  # only where a pass reads them: `_policy_features` reads them once if it can
-            return ro.planes[it, bc].flatten(0, 1)
-
         with update_precision(self.cfg.update_dtype):  # what the terms compute from these passes is float32
-            planes = None
+            planes = observed = None
             if features is not None and features.policy is not None:
                 feats = features.policy[it, bc].flatten(0, 1)
-            else:
-                planes = read_planes()
+                if policy.message_trunk is not None:
+                    feats, observed = feats.split([policy.features_width, feats.shape[1] - policy.features_width], 1)
+            else:  # this pass reads the planes itself (`_policy_features` reads them once where it can)
+                planes = ro.planes[it, bc].flatten(0, 1)
                 feats = policy.observation_features(planes, encoded)
             h1, h2 = policy.trunk(feats, policy.read_received(per_agent))
-            if planes is None and policy.message_trunk is not None:
-                planes = read_planes()
-            msg_logits, move_logits = policy.message_logits(policy.message_state(planes, h2)), policy.move_logits(h2)
+            message_state = policy.message_state(planes, h2, observed)
+            msg_logits, move_logits = policy.message_logits(message_state), policy.move_logits(h2)
         passes = (feats, h1, msg_logits, move_logits)
         return _Forward(cols, it, ib, received, encoded, *(x.float() for x in passes))
 

@@ -151,6 +151,8 @@ class PolicyNet(nn.Module):
             nn.init.zeros_(self.message_map.weight)
             nn.init.zeros_(self.message_map.bias)
         self.message_in = nn.Sequential(nn.Linear(task.slots * self.head.in_features, cfg.message_hidden), nn.ReLU())
+        self.features_width = flat
+        """Width of `observation_features`' output."""
         self.fc1 = nn.Sequential(nn.Linear(flat + cfg.message_hidden, cfg.hidden), nn.ReLU())
         self.fc2 = nn.Sequential(nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU())
         self.move_logits = nn.Linear(cfg.hidden, N_MOVES)
@@ -204,18 +206,27 @@ class PolicyNet(nn.Module):
         mass = x.sum((2, 3)).clamp(min=1e-6)  # (N, planes)
         return (torch.einsum("npij,cij->npc", x, self.coords) / mass[..., None]).flatten(1)
 
-    def message_state(self, planes: torch.Tensor | None, h2: torch.Tensor) -> torch.Tensor:
+    def message_state(
+        self, planes: torch.Tensor | None, h2: torch.Tensor, observed: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """What the message logits are read from: the second hidden layer `h2`, or (`message_reads` `observed`)
         the message head's own layers over the observed plane of the `(N, 2, S, S)` planes (which only then are
-        needed)."""
+        needed), or over its features `observed` where the caller has read them (`observed_features`)."""
         if self.message_trunk is None:
             return h2
-        assert planes is not None, "a message head of its own reads the observation planes"
-        x = planes[:, OBSERVED_PLANE : OBSERVED_PLANE + 1].to(h2.dtype)
+        if observed is None:
+            assert planes is not None, "a message head of its own reads the observation planes"
+            observed = self.observed_features(planes, h2.dtype)
+        return self.message_trunk(observed)
+
+    def observed_features(self, planes: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """`(N, 2, S, S)` planes -> the message head's reading of the observed plane (`message_reads` `observed`) in
+        `dtype`: parameter-free where `fixed_features` is, so a learner may read it once per batch."""
+        x = planes[:, OBSERVED_PLANE : OBSERVED_PLANE + 1].to(dtype)
         features = self.observed_conv(x)
         if self.cfg.plane_coords:
             features = torch.cat([features, self._centres(x)], 1)
-        return self.message_trunk(features)
+        return features
 
     def _decoded_maps(self, received_encoded: torch.Tensor | None, shape: torch.Size) -> torch.Tensor:
         """`(N, slots, S, S)`: each received message's most likely cell, one-hot, with the softmax's gradient."""
