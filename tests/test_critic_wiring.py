@@ -240,6 +240,14 @@ def test_greedy_senders_start_at_their_point_of_the_schedule() -> None:
     assert make_train_config("paper", TWO).greedy_senders == make_train_config("supervised", TWO).greedy_senders == 0
 
 
+def test_greedy_senders_keep_their_fraction_of_the_run_where_a_batch_cannot_hold_it() -> None:
+    one = make_train_config("reinforced", TWO, num_envs=1, minibatches=1, episodes=1000)  # the paper's batches
+    assert [one.greedy_sender_episodes(e) for e in range(500, 506)] == [0, 1, 0, 1, 0, 1]
+    odd = make_train_config("reinforced", TWO, num_envs=5, episodes=1000, greedy_senders=0.3, greedy_senders_from=0.0)
+    played = [odd.greedy_sender_episodes(e) for e in range(0, 1000, 5)]
+    assert set(played) == {1, 2} and sum(played) == 300
+
+
 @pytest.mark.parametrize("mode", ["sync", "a3c"])
 def test_every_trainer_plays_the_greedy_senders_of_its_schedule(mode: str, tmp_path: Path) -> None:
     """With every sender greedy from the first batch and no entropy weight, a whole run leaves the message head as

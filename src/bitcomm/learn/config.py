@@ -9,6 +9,7 @@ training-time information, or hand a policy head a target other than the return,
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -266,10 +267,13 @@ class TrainConfig:
             )
 
     def greedy_sender_episodes(self, episodes: int) -> int:
-        """How many of the next batch's episodes (its first columns) `greedy_senders` plays, `episodes` played."""
+        """How many of the next batch's episodes (its first columns) `greedy_senders` plays, `episodes` played.
+
+        The count keeps the run's running total at `greedy_senders` of its episodes rather than rounding each batch,
+        so a fraction a batch cannot hold still plays: one-episode batches at 0.5 alternate 0, 1, 0, 1."""
         if not self.greedy_senders or self.schedule_progress(episodes) < self.greedy_senders_from:
             return 0
-        return round(self.greedy_senders * self.num_envs)
+        return math.floor(self.greedy_senders * (episodes + self.num_envs)) - math.floor(self.greedy_senders * episodes)
 
     def _check_move_decay_below(self) -> None:
         """`move_decay_below` set: it needs a move decay to start, the sync trainer's rolling length, and the oracle."""
