@@ -1,4 +1,4 @@
-"""What flushing denormals is worth (`bitcomm.learn.denormals`): a trained run's batch, updated with the CPU's
+"""What flushing denormals is worth (`bitcomm.policies.denormals`): a trained run's batch, updated with the CPU's
 flush-to-zero mode on and off, taking turns.
 
 The slow path for denormal floats bites late in training, when the policy is nearly deterministic, so this
@@ -29,8 +29,8 @@ from bitcomm.checkpoint import load_weights
 from bitcomm.errors import ConfigError, check_int
 from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.config import TrainConfig
-from bitcomm.learn.denormals import flush_denormals
 from bitcomm.learn.rollout import Collector, Rollout
+from bitcomm.policies.denormals import flush_denormals
 from update_profile import fresh_learner  # benchmarks/ is not a package
 
 SETTINGS: dict[str, Callable[[], contextlib.AbstractContextManager[object]]] = {

@@ -1,6 +1,6 @@
 """Speed-ups for a nearly deterministic policy that must change no learning (docs/tuning.md, session 32).
 
-Training flushes denormal floats to zero in every thread that computes (`bitcomm.learn.denormals`) and puts the
+Training flushes denormal floats to zero in every thread that computes (`bitcomm.policies.denormals`) and puts the
 thread's mode back after; `probabilities` floors log-probabilities at e^-80 before `exp`, whose input below -87
 takes the CPU's slow path, and a probability that small changes no sum it enters.
 """
@@ -14,8 +14,9 @@ import pytest
 import torch
 
 from bitcomm.learn.beside import critic_beside_policy
-from bitcomm.learn.denormals import ENV_VAR, denormals_flushed, flush_denormals
+from bitcomm.policies.denormals import ENV_VAR, denormals_flushed, flush_denormals
 from bitcomm.policies.heads import SMALLEST_LOG_PROB, make_head, marginal_entropy, probabilities
+from bitcomm.policies.reference import OraclePolicy
 
 
 def _cpu_can_flush() -> bool:
@@ -61,6 +62,24 @@ def test_the_critic_s_helper_thread_computes_in_the_trainer_s_mode(flushing):
             assert learner.helper.submit(denormals_flushed).result() is flushing
     finally:
         torch.set_flush_denormal(False)
+
+
+@needs_flushing
+def test_evaluation_flushes_denormals_as_training_does():
+    """`bitcomm eval` and every other measure go through `evaluate`: it plays in training's mode (so it measures
+    what a run's own checks measured) and leaves the caller's mode as it found it."""
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.policies.evaluation import evaluate
+
+    modes = []
+
+    def policy(obs):
+        modes.append(denormals_flushed())
+        return OraclePolicy(task)(obs)
+
+    task = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
+    evaluate(policy, task, episodes=8)
+    assert modes and all(modes) and not denormals_flushed()
 
 
 def test_probabilities_are_exp_down_to_e_minus_80_and_floored_below():

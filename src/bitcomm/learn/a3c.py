@@ -32,7 +32,6 @@ from bitcomm.checkpoint import first_nonfinite
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
-from bitcomm.learn.denormals import flush_denormals
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
@@ -45,6 +44,7 @@ from bitcomm.learn.run_folder import (
     save_run_checkpoint,
     write_config,
 )
+from bitcomm.policies.denormals import flush_denormals
 
 
 def _grouped_params(groups: list[dict[str, Any]]) -> list[torch.Tensor]:

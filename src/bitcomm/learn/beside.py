@@ -20,7 +20,7 @@ from typing import Protocol, TypeVar
 
 import torch
 
-from bitcomm.learn.denormals import denormals_flushed
+from bitcomm.policies.denormals import denormals_flushed
 
 T = TypeVar("T")
 
@@ -46,7 +46,7 @@ def critic_beside_policy(learner: HasHelper, threads: int) -> Iterator[None]:
         return
     previous = torch.get_num_threads()
     torch.set_num_threads(threads // 2)
-    learner.helper = ThreadPoolExecutor(  # in the trainer's denormal mode (bitcomm.learn.denormals)
+    learner.helper = ThreadPoolExecutor(  # in the trainer's denormal mode (bitcomm.policies.denormals)
         1, thread_name_prefix="bitcomm-critic", initializer=torch.set_flush_denormal, initargs=(denormals_flushed(),)
     )
     try:

@@ -22,7 +22,6 @@ from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_weights
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
-from bitcomm.learn.denormals import flush_denormals
 from bitcomm.learn.env_config import EnvTrainConfig, is_env_config
 from bitcomm.learn.env_learner import EnvLearner
 from bitcomm.learn.env_rollout import make_vec, play
@@ -38,6 +37,7 @@ from bitcomm.learn.run_folder import (
     train_batches,
     write_config,
 )
+from bitcomm.policies.denormals import flush_denormals
 from bitcomm.run_lock import run_lock
 
 

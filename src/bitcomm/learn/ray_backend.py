@@ -36,7 +36,6 @@ import torch
 from bitcomm.errors import ConfigError, bad_value
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.config import TrainConfig
-from bitcomm.learn.denormals import flush_denormals
 from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.learn.run_folder import (
     Logger,
@@ -48,6 +47,7 @@ from bitcomm.learn.run_folder import (
     save_learner,
     write_config,
 )
+from bitcomm.policies.denormals import flush_denormals
 from bitcomm.policies.networks import PolicyNet
 
 ACTOR_PREFIX = "bitcomm-rollout"

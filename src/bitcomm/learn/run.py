@@ -27,7 +27,6 @@ from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.config import TrainConfig
-from bitcomm.learn.denormals import flush_denormals
 from bitcomm.learn.held_out import held_out
 from bitcomm.learn.run_folder import (
     Logger,
@@ -41,6 +40,7 @@ from bitcomm.learn.run_folder import (
     train_batches,
     write_config,
 )
+from bitcomm.policies.denormals import flush_denormals
 from bitcomm.run_lock import run_lock
 
 

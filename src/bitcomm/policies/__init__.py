@@ -3,7 +3,8 @@ observation encoders) and message heads (`heads.py`), the MLP policy and critic 
 env's vector observations (`mlp.py`), the learned policy as a numpy-in/numpy-out
 `Controller` and its ONNX form (`onnx_export.py`, `onnx_policy.py`), the reference policies
 (`reference.py`: oracle, random), the per-agent view every runtime shares (`agent_policies.py`),
-where a command's policy comes from (`source.py`) and the one evaluator (`evaluation.py`).
+where a command's policy comes from (`source.py`), the one evaluator (`evaluation.py`) and the CPU's
+denormal mode both training and evaluation run in (`denormals.py`).
 
 May import: `bitcomm.config`, `bitcomm.errors`, `bitcomm.checkpoint`, `bitcomm.channel`, `bitcomm.envs`.
 Nothing here knows how a policy is trained. Importing the package imports nothing (no torch).

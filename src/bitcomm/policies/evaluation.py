@@ -103,7 +103,10 @@ def evaluate(policy: Policy, task: TaskConfig, episodes: int = 2000, seed: int =
     """Mean episode length (95% interval), mean team return and success rate over a seeded set."""
     if not isinstance(episodes, int) or episodes < 1:
         raise bad_value("episodes", episodes, "must be an integer >= 1")
-    return EvalResult.from_episodes(*run_first_episodes(policy, task, episodes, seed))
+    from bitcomm.policies.denormals import flush_denormals  # torch: not at import, which `bitcomm --help` does
+
+    with flush_denormals():  # as training does: the same numbers its checks measured, without the slow path
+        return EvalResult.from_episodes(*run_first_episodes(policy, task, episodes, seed))
 
 
 def evaluate_checkpoint(
