@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from bitcomm.learn.recipes import DEFAULT_RECIPE
+from set_flag import add_set_flag, parse_set  # benchmarks/ is not a package: the script's folder is on the path
 
 RUNGS = (("2x", 2.0), ("1.5x", 1.5), ("1.15x", 1.15))
 GREEDY_RUNG = ("greedy 1.05x", 1.05)
@@ -183,7 +184,6 @@ def main() -> None:
     from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
     from bitcomm.errors import ConfigError, check_int, check_number
     from bitcomm.learn.config import make_train_config
-    from bitcomm.learn.options import learning_options
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_seed_flags(ap)
@@ -199,21 +199,10 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per seed")
     ap.add_argument("--out", type=Path, default=None, help="default runs/solve/<recipe>-<size>x<size>-<time>")
-    ap.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="a learning option, as `bitcomm train --help` lists them (field names: num_envs)",
-    )
+    add_set_flag(ap)
     a = ap.parse_args()
-    options = learning_options()
-    pairs = [item.partition("=")[::2] for item in a.set]
-    for item, (name, value) in zip(a.set, pairs, strict=True):
-        if name not in options or not value:
-            ap.error(f"--set {item!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(options))}")
     try:  # bad input is one line before any seed starts
-        overrides = [(name, options[name].parse(value)) for name, value in pairs]
+        overrides = parse_set(ap, a.set)
         for name in ("seeds", "jobs", "threads", "chunk", "eval_episodes", "max_episodes"):
             check_int(name, getattr(a, name), 1)
         check_number("minutes", a.minutes, 0.0, strict=True)

@@ -13,10 +13,11 @@ each multi-pass recipe with `epochs=1, minibatches=1` (one gradient step per bat
 actor-critic), so the trainer's own cost and the recipe's reuse can be told apart in one run.
 `--num-envs N` sets every recipe's episodes per batch: `--recipes paper --num-envs 64` is the paper's
 network and update over the batches `reinforced` uses. `--size`, `--bits` and `--messages` time another
-task or message head (`--size 32 --bits 10 --messages onehot`: a one-hot head of 1,024 outputs).
+task or message head (`--size 32 --bits 10 --messages onehot`: a one-hot head of 1,024 outputs); `--set
+NAME=VALUE` any other learning option (`--set sender_hidden=64`: a narrower message head of its own).
 
     python benchmarks/train_speed.py [--modes sync,a3c] [--recipes paper,reinforced] [--batches 3] [--single-pass]
-        [--num-envs N] [--size S] [--bits K] [--messages bitwise|onehot]
+        [--num-envs N] [--size S] [--bits K] [--messages bitwise|onehot] [--set NAME=VALUE ...]
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import json
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -34,6 +36,7 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError, check_int
 from bitcomm.learn.config import RECIPES, make_train_config
 from bitcomm.learn.run import train
+from set_flag import add_set_flag, parse_set  # benchmarks/ is not a package: the script's folder is on the path
 
 
 def measure(
@@ -46,6 +49,7 @@ def measure(
     num_envs: int | None = None,
     task: TaskConfig | None = None,
     messages: str | None = None,
+    overrides: dict[str, Any] | None = None,
 ) -> dict[str, float]:
     num_envs = RECIPES[recipe]["num_envs"] if num_envs is None else num_envs
     reuse = dict(epochs=1, minibatches=1) if single_pass else {}
@@ -62,7 +66,7 @@ def measure(
         num_envs=num_envs,
         episodes=episodes,
         checkpoint_seconds=1e9,
-        **reuse,
+        **{**(overrides or {}), **reuse},
     )
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -101,14 +105,22 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=EnvConfig.size, help="grid size (default %(default)s)")
     ap.add_argument("--bits", type=int, default=ChannelConfig.bits, help="message bits K (default %(default)s)")
     ap.add_argument("--messages", default=None, help="message head, bitwise or onehot (default: each recipe's)")
+    add_set_flag(ap)
     args = ap.parse_args()
     recipes, modes = args.recipes.split(","), args.modes.split(",")
     try:  # bad input is one line before anything runs
+        overrides = dict(parse_set(ap, args.set))
         task = TaskConfig(env=EnvConfig(size=args.size), channel=ChannelConfig(bits=args.bits))
         for recipe in recipes:
             for mode in modes:
                 make_train_config(
-                    recipe, task, mode=mode, workers=args.workers, num_envs=args.num_envs, messages=args.messages
+                    recipe,
+                    task,
+                    mode=mode,
+                    workers=args.workers,
+                    num_envs=args.num_envs,
+                    messages=args.messages,
+                    **overrides,
                 )
         for name in ("threads", "batches", "warmup"):  # timing starts after the last warm-up batch
             check_int(name, getattr(args, name), 1)
@@ -130,6 +142,7 @@ def main() -> None:
                     args.num_envs,
                     task,
                     args.messages,
+                    overrides,
                 )
                 name = f"{mode}/{recipe}" + ("/single-pass" if single_pass else "")
                 results[name] = r

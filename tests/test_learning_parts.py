@@ -406,11 +406,14 @@ def test_a_message_head_that_reads_the_observed_plane_ignores_where_the_sender_i
     assert not torch.allclose(net(planes(own, (seen + 1) % cells), heard)[1], messages)
 
 
-@pytest.mark.parametrize("message_reads", ["all", "observed"])
-def test_the_update_reads_the_message_logits_the_agents_acted_on(message_reads):
-    """The learner's pass over a rollout gives every step the logits acting gave it, whatever the head reads."""
-    cfg = make_train_config("reinforced", TINY, num_envs=4, message_reads=message_reads)
+@pytest.mark.parametrize(("message_reads", "sender_hidden"), [("all", 128), ("observed", 128), ("observed", 16)])
+def test_the_update_reads_the_message_logits_the_agents_acted_on(message_reads, sender_hidden):
+    """The learner's pass over a rollout gives every step the logits acting gave it, whatever the head reads and
+    however wide its own layers are."""
+    cfg = make_train_config("reinforced", TINY, num_envs=4, message_reads=message_reads, sender_hidden=sender_hidden)
     learner = Learner(cfg)
+    width = sender_hidden if message_reads == "observed" else cfg.model.hidden
+    assert learner.policy.message_logits.in_features == width
     ro = Collector(TINY, 4).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     with torch.no_grad():
         fw = learner._forward(ro, torch.arange(4))
@@ -418,6 +421,12 @@ def test_the_update_reads_the_message_logits_the_agents_acted_on(message_reads):
     assert torch.allclose(fw.msg_logits, messages) and torch.allclose(fw.move_logits, moves)
     stats = learner.update(ro, torch.Generator().manual_seed(0))
     assert all(np.isfinite(v) for v in stats.values())
+
+
+def test_a_message_head_of_its_own_is_the_only_one_with_a_width_to_set() -> None:
+    assert ModelConfig(message_reads="observed", sender_hidden=32).sender_hidden == 32
+    with pytest.raises(ConfigError, match="sender-hidden=32: acts only with --message-reads observed"):
+        ModelConfig(sender_hidden=32)
 
 
 @pytest.mark.parametrize("clip", [0.0, 0.2])

@@ -166,7 +166,8 @@ def network_bytes(cfg: TrainConfig) -> int:
     fully connected layers over the widest convolution output (stride ignored, so an overestimate)."""
     model, task = cfg.model, cfg.task
     wide = max(model.conv_channels, default=1) * task.env.cells + model.message_hidden
-    return 3 * 16 * (model.hidden * (wide + model.hidden) + model.message_hidden * 4 * task.env.n_agents * 64)
+    sender = model.sender_hidden * (task.env.cells + model.sender_hidden) if model.message_reads == "observed" else 0
+    return 3 * 16 * (model.hidden * (wide + model.hidden) + model.message_hidden * 4 * task.env.n_agents * 64 + sender)
 
 
 def check_memory(flag: str, value: object, need: int, what: str) -> None:
@@ -197,7 +198,7 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
             raise bad_value(name.replace("_", "-"), getattr(cfg, name), f"must be an integer in [1, {most}]")
     workers = cfg.workers if cfg.mode == "a3c" or cfg.backend == "ray" else 1
     learners = processes * workers
-    wider = max(("hidden", "message_hidden"), key=lambda name: getattr(cfg.model, name))
+    wider = max(("hidden", "message_hidden", "sender_hidden"), key=lambda name: getattr(cfg.model, name))
     check_memory(wider.replace("_", "-"), getattr(cfg.model, wider), learners * network_bytes(cfg), "the networks")
     batch = cfg.num_envs * workers * processes
     rollouts = play_bytes(task, batch, task.env.max_steps)

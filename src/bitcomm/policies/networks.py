@@ -66,6 +66,9 @@ class ModelConfig:
     forms in about half the episodes (2x the oracle after 10-12k episodes on 5 seeds; docs/tuning.md session 28),
     and with `greedy_senders` greedy play ends within 1.10x of the oracle on every seed (session 34): the
     `reinforced` recipe's head since session 35 (`all` stays this config's default, the paper's head)."""
+    sender_hidden: int = 128
+    """Width of the message head's own two layers (`message_reads` `observed`). They cost the policy about as much
+    as its own trunk (each agent-step runs both), so a narrower pair trains more agent-steps a second."""
     message_map: bool = False
     """Also decode each received message into a map over the grid's cells (one linear layer; its most
     likely cell as a one-hot plane, with the softmax's gradient) stacked beside the observation planes:
@@ -78,8 +81,12 @@ class ModelConfig:
             raise bad_value("encoder", self.encoder, f"choose one of {', '.join(ENCODERS)}")
         if self.message_reads not in MESSAGE_READS:
             raise bad_value("message_reads", self.message_reads, f"choose one of {', '.join(MESSAGE_READS)}")
-        for name in ("conv_stride", "message_hidden", "hidden"):
+        for name in ("conv_stride", "message_hidden", "hidden", "sender_hidden"):
             check_int(name, getattr(self, name), 1)
+        if self.sender_hidden != 128 and self.message_reads != "observed":
+            raise bad_value(
+                "sender-hidden", self.sender_hidden, "acts only with --message-reads observed; leave it at 128"
+            )
         channels = tuple(self.conv_channels)
         if not channels or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in channels):
             raise bad_value("conv_channels", self.conv_channels, "one or more integers >= 1")
@@ -156,14 +163,15 @@ class PolicyNet(nn.Module):
         self.fc1 = nn.Sequential(nn.Linear(flat + cfg.message_hidden, cfg.hidden), nn.ReLU())
         self.fc2 = nn.Sequential(nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU())
         self.move_logits = nn.Linear(cfg.hidden, N_MOVES)
-        self.message_logits = nn.Linear(cfg.hidden, self.head.out_features)
         self.message_trunk: nn.Sequential | None = None
         if cfg.message_reads == "observed":  # what the agent observes, on layers of its own
             self.observed_conv, observed = _conv_stack(1, cfg, size)
             observed += 2 if cfg.plane_coords else 0
+            width = cfg.sender_hidden
             self.message_trunk = nn.Sequential(
-                nn.Linear(observed, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU()
+                nn.Linear(observed, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU()
             )
+        self.message_logits = nn.Linear(cfg.sender_hidden if self.message_trunk else cfg.hidden, self.head.out_features)
         # moves start uniform whatever the hidden layers say (as CleanRL's actor head, std 0.01), so a
         # warm start that shapes the hidden layers does not leave the agents a strong random habit
         with torch.no_grad():
