@@ -423,6 +423,21 @@ def test_the_update_reads_the_message_logits_the_agents_acted_on(message_reads, 
     assert all(np.isfinite(v) for v in stats.values())
 
 
+def test_a_seed_s_initial_message_head_is_what_it_was_before_its_width_became_an_option() -> None:
+    """Runs are replayed by seed across versions (docs/tuning.md compares seeds run sessions apart): building the
+    message head's layers in another order would give every seed other initial weights. Values from commit 8de3f1b."""
+    torch.manual_seed(0)
+    net = PolicyNet(
+        TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4)),
+        ModelConfig(encoder="marginals", plane_coords=True, message_reads="observed"),
+    )
+    assert net.message_trunk is not None
+    expected = {"message_logits": [0.076503, -0.086138, -0.08263], "trunk": [-0.012881, -0.028237, 0.028326]}
+    got = {"message_logits": net.message_logits.weight[0, :3], "trunk": net.message_trunk[2].weight[0, :3]}
+    for name, values in expected.items():
+        assert torch.allclose(got[name], torch.tensor(values), atol=1e-6), name
+
+
 def test_a_message_head_of_its_own_is_the_only_one_with_a_width_to_set() -> None:
     assert ModelConfig(message_reads="observed", sender_hidden=32).sender_hidden == 32
     with pytest.raises(ConfigError, match="sender-hidden=32: acts only with --message-reads observed"):

@@ -163,15 +163,17 @@ class PolicyNet(nn.Module):
         self.fc1 = nn.Sequential(nn.Linear(flat + cfg.message_hidden, cfg.hidden), nn.ReLU())
         self.fc2 = nn.Sequential(nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU())
         self.move_logits = nn.Linear(cfg.hidden, N_MOVES)
+        own = cfg.message_reads == "observed"  # the message head reads what the agent observes, on layers of its own
+        # created before those layers, so that a seed's initial weights are what they were before `sender_hidden`
+        self.message_logits = nn.Linear(cfg.sender_hidden if own else cfg.hidden, self.head.out_features)
         self.message_trunk: nn.Sequential | None = None
-        if cfg.message_reads == "observed":  # what the agent observes, on layers of its own
+        if own:
             self.observed_conv, observed = _conv_stack(1, cfg, size)
             observed += 2 if cfg.plane_coords else 0
             width = cfg.sender_hidden
             self.message_trunk = nn.Sequential(
                 nn.Linear(observed, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU()
             )
-        self.message_logits = nn.Linear(cfg.sender_hidden if self.message_trunk else cfg.hidden, self.head.out_features)
         # moves start uniform whatever the hidden layers say (as CleanRL's actor head, std 0.01), so a
         # warm start that shapes the hidden layers does not leave the agents a strong random habit
         with torch.no_grad():
