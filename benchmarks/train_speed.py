@@ -110,6 +110,10 @@ def main() -> None:
     recipes, modes = args.recipes.split(","), args.modes.split(",")
     try:  # bad input is one line before anything runs
         overrides = dict(parse_set(ap, args.set))
+        own = {"mode": "give --modes", "workers": "give --workers", "num_envs": "give --num-envs",
+               "messages": "give --messages", "checkpoint_seconds": "a timed run never checkpoints"}  # fmt: skip
+        for name in sorted(own.keys() & overrides.keys()):  # options this script sets itself
+            ap.error(f"--set {name}=...: {own[name]}")
         task = TaskConfig(env=EnvConfig(size=args.size), channel=ChannelConfig(bits=args.bits))
         for recipe in recipes:
             for mode in modes:

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = "--modes sync --recipes reinforced --batches 1 --warmup 1 --num-envs 8 --threads 1 --single-pass"
@@ -44,6 +45,14 @@ def test_train_speed_times_another_task_and_head_and_refuses_a_bad_head_in_one_l
     assert summary["task"] == "5x5, K=5, onehot" and summary["results"]["sync/reinforced"]["agent_steps"] > 0
     bad = subprocess.run([*argv, "morse"], cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
     assert bad.returncode == 2 and "messages='morse'" in bad.stderr and "Traceback" not in bad.stderr
+
+
+@pytest.mark.parametrize(("item", "said"), [("num_envs=64", "give --num-envs"), ("sender_hidden=0", "sender-hidden=0")])
+def test_train_speed_takes_learning_options_by_set_and_refuses_bad_ones_in_one_line(item, said) -> None:
+    """`--set` reaches every learning option but those the script sets itself, which have their own flags."""
+    argv = [sys.executable, "benchmarks/train_speed.py", "--modes", "sync", "--recipes", "reinforced", "--set", item]
+    out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and said in out.stderr and "Traceback" not in out.stderr
 
 
 def test_ablation_rows_are_single_changes_that_build_valid_configs() -> None:
