@@ -124,6 +124,7 @@ KNOWN: list[tuple[list[str], str]] = [
     (["deploy", "--timeout", "nan"], "timeout"),
     (["deploy", "--timeout", "inf"], "timeout"),
     (["render", "--fps", "nan"], "fps"),
+    (["render", "--out", "episode"], "out"),  # the animation is a GIF: a name without .gif was a PIL traceback
     (["baseline", "--seed", "-1"], "seed"),
     (["baseline", "--size", "100000"], "size"),
     (["baseline", "--bits", "4"], "bits"),  # the oracle needs 7 bits on a 10x10 grid
@@ -147,6 +148,8 @@ def kind(action: argparse.Action) -> str | None:
         return "number"
     if name in ("out_dir", "out_file"):
         return name
+    if name == "gif_file":  # an out_file with a suffix
+        return "out_file"
     return "text"
 
 

@@ -163,6 +163,22 @@ def test_grid_flags_are_one_error_line(
     assert err.count("\n") == 1 and says in err
 
 
+@pytest.mark.parametrize(
+    "command",
+    [["analyze", "--out", "T/a"], ["deploy"], ["export", "--onnx", "T/x.onnx"], ["variance", "--out", "T/a"]],
+    ids=lambda c: c[0],
+)
+def test_commands_for_grid_runs_refuse_an_env_run_in_one_line(
+    command: list[str], run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Where it was a KeyError of the grid's config ('task'), the line names the env and the commands that read it."""
+    name, *flags = command
+    assert main([name, str(run), *(f.replace("T", str(tmp_path)) for f in flags)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"trained on a wrapped env ({SPEC})" in err and "bitcomm eval" in err
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]  # nothing written
+
+
 def test_mpe2_speaker_listener(tmp_path: Path) -> None:
     pytest.importorskip("mpe2")
     run, gif = tmp_path / "sl", tmp_path / "sl.gif"

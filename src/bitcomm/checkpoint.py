@@ -393,6 +393,24 @@ def load_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], 
     return weights, {**info, "path": str(file)}
 
 
+def is_env_config(d: dict[str, Any]) -> bool:
+    """A config dict (config.json, checkpoint metadata) of a run on a wrapped env, not on the grid."""
+    return isinstance(d.get("env"), str) and "channel" in d and "task" not in d
+
+
+def load_grid_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
+    """`load_weights` for the commands that read runs of the grid task alone (analyze, deploy, export, variance):
+    a run trained on a wrapped env is one line naming its env, not a missing key of the grid's config."""
+    weights, info = load_weights(path)
+    if is_env_config(info["config"]):
+        raise _bad(
+            info["path"],
+            f"trained on a wrapped env ({info['config']['env']}); this command reads runs of the grid task "
+            "(bitcomm eval and bitcomm render read both)",
+        )
+    return weights, info
+
+
 def load_state(weights_file: Path) -> dict[str, Any]:
     """The resume state stored next to a checkpoint's weights, checked against the weights' record of it."""
     state_path = weights_file.with_name(weights_file.name.replace(".safetensors", ".state.pt"))

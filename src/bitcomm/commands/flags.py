@@ -135,6 +135,14 @@ def out_file(text: str) -> Path:
     return path
 
 
+def gif_file(text: str) -> Path:
+    """An argparse type: `out_file` named `*.gif`, the only format the animation is written in."""
+    path = out_file(text)
+    if path.suffix.lower() != ".gif":
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: a GIF file name, ending in .gif")
+    return path
+
+
 def available_bytes() -> int:
     """Memory the system can still give (MemAvailable), or all of it where /proc is missing."""
     try:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from bitcomm.commands.common import add_task_flags
-from bitcomm.commands.flags import MAX_FPS, MAX_FRAMES, SEED, number, out_dir, out_file
+from bitcomm.commands.flags import MAX_FPS, MAX_FRAMES, SEED, gif_file, number, out_dir
 from bitcomm.errors import bad_value
 from bitcomm.policies.source import add_policy_flags, source_from_args
 
@@ -19,7 +19,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "and the bits sent and received. For a run trained with --env: the env's own picture and each agent's "
         "bits (only --drop-prob of the task flags applies).",
     )
-    p.add_argument("--out", type=out_file, default="episode.gif", help="GIF to write (default %(default)s)")
+    p.add_argument("--out", type=gif_file, default="episode.gif", help="GIF to write (default %(default)s)")
     p.add_argument(
         "--frames-dir",
         type=out_dir,

@@ -118,8 +118,3 @@ class EnvTrainConfig:
 
 
 _FIELDS = {f.name for f in dataclasses.fields(EnvTrainConfig)}
-
-
-def is_env_config(d: dict[str, Any]) -> bool:
-    """A config dict (config.json, checkpoint metadata) of a run on a wrapped env, not on the grid."""
-    return isinstance(d.get("env"), str) and "channel" in d and "task" not in d

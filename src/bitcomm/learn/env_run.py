@@ -18,11 +18,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import CHECKPOINTS, LATEST, load_weights
+from bitcomm.checkpoint import CHECKPOINTS, LATEST, is_env_config, load_weights
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
-from bitcomm.learn.env_config import EnvTrainConfig, is_env_config
+from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_learner import EnvLearner
 from bitcomm.learn.env_rollout import make_vec, play
 from bitcomm.learn.run_folder import (

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import load_weights
+from bitcomm.checkpoint import load_grid_weights
 from bitcomm.config import TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.policies.agent import act
@@ -52,7 +52,7 @@ class Controller:
     @classmethod
     def load(cls, path: str | Path, seed: int = 0) -> Controller:
         """From a run folder (its latest checkpoint) or a checkpoint file; `seed` drives sampling."""
-        weights, info = load_weights(path)
+        weights, info = load_grid_weights(path)
         config = info["config"]
         try:
             net = PolicyNet(TaskConfig.from_dict(config["task"]), model_from_dict(config["model"]))

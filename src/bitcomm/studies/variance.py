@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import checkpoints, load_weights
+from bitcomm.checkpoint import checkpoints, load_grid_weights
 from bitcomm.config import TaskConfig
 from bitcomm.errors import ConfigError, bad_value
 from bitcomm.learn.config import TrainConfig
@@ -166,7 +166,7 @@ def select_stages(path: str | Path, stages: str | int | tuple[int, ...]) -> list
 
 def load_stage(file: str | Path) -> Stage:
     """A checkpoint as a stage: its policy weights and the config it was trained with."""
-    weights, info = load_weights(file)
+    weights, info = load_grid_weights(file)
     try:
         cfg = TrainConfig.from_dict(info["config"])
     except (KeyError, TypeError) as err:
