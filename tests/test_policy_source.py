@@ -81,6 +81,9 @@ def test_only_typed_task_flags_change_the_base_task() -> None:
     assert resolve_task(parse(["--size", "10", "--bits", "7"]), base).env.size == 10
     with pytest.raises(ConfigError, match="size"):
         resolve_task(parse(["--size", "10"]), base, strict=True)
+    # a network's input shape is refused by the flag typed, not by the config's field (n_agents)
+    with pytest.raises(ConfigError, match=r"^invalid agents=3: RUN was trained with agents=2$"):
+        resolve_task(parse(["--agents", "3"]), base, strict=True)
     # for reference policies the base is the paper's task, so the flags mean what they say
     assert PolicySource("oracle").task_from_args(parse([])) == TaskConfig()
     assert type(PolicySource("oracle").task_from_args(parse([])).env.size) is int

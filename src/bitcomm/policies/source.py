@@ -86,7 +86,8 @@ def resolve_task(args: argparse.Namespace, base: TaskConfig, label: str = "RUN",
     for dest, value in given.items():
         part, name = TASK_FLAGS[dest]
         if strict and dest in INPUT_SHAPE_FLAGS and value != getattr(getattr(base, part), name):
-            raise bad_value(name, value, f"{label} was trained with {name}={getattr(getattr(base, part), name)}")
+            flag = dest.replace("_", "-")  # the flag typed (--agents), not the config's field (n_agents)
+            raise bad_value(flag, value, f"{label} was trained with {flag}={getattr(getattr(base, part), name)}")
         changes[part][name] = value
     env: EnvConfig = dataclasses.replace(base.env, **changes["env"])
     channel: ChannelConfig = dataclasses.replace(base.channel, **changes["channel"])
