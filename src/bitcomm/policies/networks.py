@@ -83,9 +83,10 @@ class ModelConfig:
             raise bad_value("message_reads", self.message_reads, f"choose one of {', '.join(MESSAGE_READS)}")
         for name in ("conv_stride", "message_hidden", "hidden", "sender_hidden"):
             check_int(name, getattr(self, name), 1)
-        if self.sender_hidden != 128 and self.message_reads != "observed":
+        width = ModelConfig.__dataclass_fields__["sender_hidden"].default  # the field's literal, which --help reads
+        if self.sender_hidden != width and self.message_reads != "observed":
             raise bad_value(
-                "sender-hidden", self.sender_hidden, "acts only with --message-reads observed; leave it at 128"
+                "sender-hidden", self.sender_hidden, f"acts only with --message-reads observed; leave it at {width}"
             )
         channels = tuple(self.conv_channels)
         if not channels or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in channels):
