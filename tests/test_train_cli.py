@@ -19,6 +19,7 @@ import torch
 
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError
 
 TINY = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16"]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
@@ -150,6 +151,11 @@ def test_eval_json_and_controller(run_dir: Path) -> None:
     moves, bits = c.act(planes, received, greedy=True)
     assert moves.shape == (5,) and bits.shape == (5, 4)
     assert np.array_equal(c.act(planes[:1], received[:1], greedy=True)[0], moves[:1])
+    # planes and bits hold 0 or 1: a robot's 0.5 or NaN is one error line, not a silent cast to uint8
+    with pytest.raises(ConfigError, match=r"^invalid planes value 0\.5: every entry must be 0 or 1$"):
+        c.act(planes * 0.5, received)
+    with pytest.raises(ConfigError, match=r"^invalid received_bits value 2: every entry must be 0 or 1$"):
+        c.act(planes, received + 2)
 
     # the trainer's own acting path (NetworkPolicy) and `bitcomm eval --greedy` play the same episodes alike
     ours = evaluate(NetworkPolicy(c.policy, greedy=True), c.task, 100, seed=3)
