@@ -510,6 +510,44 @@ def test_the_loop_ranks_each_checkpoint_by_the_evaluation_it_follows_and_the_oth
     assert (HELD_OUT_COLUMN in header) == evaluates
 
 
+def test_the_rolling_length_of_sampled_messages_leaves_out_the_greedy_senders_episodes() -> None:
+    """From `greedy_senders_from` on, the rolling length mixes in episodes played with every sender's most likely
+    message; the sampled column keeps the messages the run samples, and a checkpoint carries it."""
+    import numpy as np
+
+    from bitcomm.learn.run_folder import SAMPLED_ROLLING, Progress
+
+    prog = Progress()
+    row = prog.add_batch(np.array([10, 20, 30, 40]), np.zeros(4), 200, sent_greedy=np.array([True, True, False, False]))
+    assert row["charts/episode_length_rolling"] == 25 and row[SAMPLED_ROLLING] == 35
+    row = prog.add_batch(np.array([90, 50]), np.zeros(2), 280, sent_greedy=np.array([True, False]))
+    assert row["charts/episode_length_rolling"] == 40 and row[SAMPLED_ROLLING] == (30 + 40 + 50) / 3
+    assert SAMPLED_ROLLING not in prog.add_batch(np.array([5]), np.zeros(1), 10)  # an env run: no such episodes
+    resumed = Progress()
+    resumed.restore({"episodes": 7, "batches": 3, **prog.state()})
+    assert list(resumed.recent_sampled) == list(prog.recent_sampled) == [30, 40, 50]
+    before = {k: v for k, v in prog.state().items() if k != "recent_sampled_lengths"}  # a checkpoint of session 36
+    resumed = Progress()
+    resumed.restore({"episodes": 7, "batches": 3, **before})
+    assert list(resumed.recent_sampled) == list(prog.recent)
+
+
+def test_a_run_with_greedy_senders_logs_and_plots_its_sampled_episodes_apart(capsys, tmp_path: Path) -> None:
+    import csv
+
+    from bitcomm.learn.run_folder import SAMPLED_ROLLING
+
+    out = tmp_path / "run"
+    flags = ["--episodes", "64", "--greedy-senders", "0.5", "--greedy-senders-from", "0.5", "--out", str(out)]
+    rc, err = cli(capsys, "train", *QUICK, *flags)
+    assert rc == 0, err
+    with (out / "metrics.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    first = [r for r in rows if int(r["episodes"]) <= 32]  # before halfway every message is sampled
+    assert first and all(r[SAMPLED_ROLLING] == r["charts/episode_length_rolling"] for r in first)
+    assert (out / "learning_curve.png").is_file()
+
+
 def test_evaluations_leave_the_training_itself_unchanged(tmp_path: Path, capsys) -> None:
     """The held-out set is played on a copy with a generator of its own: weights after training are the same bit
     for bit as a run's that never evaluates."""

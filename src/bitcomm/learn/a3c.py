@@ -156,7 +156,8 @@ def _worker(
                 seed = np.random.SeedSequence(cfg.seed, spawn_key=(k,))
                 ro = collector.collect(learner.policy, seed, generator, cfg.greedy_sender_episodes(claimed_before))
                 stats = learner.update(ro, generator, progress=cfg.schedule_progress(claimed_before))
-            results.put(("batch", w, ro.length.copy(), ro.team_return.copy(), ro.success.copy(), stats))
+            sent_greedy = ro.sent_greedy.numpy().copy()
+            results.put(("batch", w, ro.length.copy(), ro.team_return.copy(), ro.success.copy(), sent_greedy, stats))
         results.put(("done", w))
     except BaseException:  # report, so the main process stops with the worker's traceback
         results.put(("error", w, traceback.format_exc()))
@@ -229,9 +230,9 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
             if msg[0] == "done":
                 done.add(msg[1])
                 continue
-            _, _, length, team_return, success, stats = msg
+            _, _, length, team_return, success, sent_greedy, stats = msg
             prog.wall_s = wall0 + time.perf_counter() - t_start
-            row = prog.add_batch(length, team_return, int(length.sum()) * n)
+            row = prog.add_batch(length, team_return, int(length.sum()) * n, sent_greedy=sent_greedy)
             row.update({"charts/success": float(success.mean()), **stats})
             finite_or_stop(out, learner, prog.episodes)
             logger.log(row)

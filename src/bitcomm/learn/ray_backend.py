@@ -267,7 +267,8 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
         weights = ray.put(_policy_weights(learner.policy))  # once per update, whatever the number of actors
         update_s = time.perf_counter() - t0
         prog.wall_s = wall0 + time.perf_counter() - t_start
-        row = prog.add_batch(ro.length, ro.team_return, int(ro.length.sum()) * n, batches=len(batches))
+        sent_greedy = ro.sent_greedy.numpy()
+        row = prog.add_batch(ro.length, ro.team_return, int(ro.length.sum()) * n, len(batches), sent_greedy)
         row.update(
             {
                 "charts/success": float(ro.success.mean()),

@@ -98,7 +98,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
         )
         finite_or_stop(out, learner, prog.episodes + len(ro.length))
         prog.wall_s += time.perf_counter() - t0
-        row = prog.add_batch(ro.length, ro.team_return, int(ro.length.sum()) * n)
+        row = prog.add_batch(ro.length, ro.team_return, int(ro.length.sum()) * n, sent_greedy=ro.sent_greedy.numpy())
         return {**row, "charts/success": float(ro.success.mean()), **stats}
 
     def postfix(row: dict[str, Any]) -> dict[str, str]:

@@ -51,6 +51,8 @@ from bitcomm.plotting import save_figure
 
 ROLLING = 1000
 """Episodes in the rolling mean of the progress bar, the log and the plot."""
+SAMPLED_ROLLING = "charts/episode_length_sampled_rolling"
+"""metrics.csv's column of the rolling length over the episodes whose messages were sampled (`Progress.add_batch`)."""
 LEARNING_COLUMNS = ("batch", "episodes", "agent_steps")
 """Columns besides the learner's and the charts; `wall_s` is the only one that is not reproducible."""
 
@@ -291,6 +293,14 @@ def plot_learning_curve(out: Path, metric: str = "episode_length") -> Path:
         rolling = [float(r[f"charts/{metric}_rolling"]) for r in rows]
         ax.plot(x, batch, color="C0", alpha=0.25, lw=0.8, label="batch mean")
         ax.plot(x, rolling, color="C0", label=f"last {ROLLING} episodes")
+        sampled = [
+            (xi, float(r[SAMPLED_ROLLING]), ri)
+            for xi, r, ri in zip(x, rows, rolling, strict=True)
+            if r.get(SAMPLED_ROLLING)
+        ]
+        if metric == "episode_length" and any(v != ri for _, v, ri in sampled):  # apart once greedy senders play
+            xs, vs, _ = zip(*sampled, strict=True)
+            ax.plot(xs, vs, color="C2", lw=1, label=f"last {ROLLING} episodes of sampled messages")
         held = [(float(r["episodes"]), float(r[HELD_OUT_COLUMN])) for r in rows if r.get(HELD_OUT_COLUMN)]
         if held and metric == "episode_length":
             play = "greedy" if config.get("held_out_greedy", True) else "sampled"
@@ -322,18 +332,28 @@ class Progress:
         self.wall_s = 0.0
         self.recent: deque[int] = deque(maxlen=ROLLING)
         self.recent_return: deque[float] = deque(maxlen=ROLLING)
+        self.recent_sampled: deque[int] = deque(maxlen=ROLLING)
+        """Lengths of the last episodes whose messages were sampled (not `TrainConfig.greedy_senders`' episodes)."""
 
     def add_batch(
-        self, length: np.ndarray, team_return: np.ndarray, agent_steps: int, batches: int = 1
+        self,
+        length: np.ndarray,
+        team_return: np.ndarray,
+        agent_steps: int,
+        batches: int = 1,
+        sent_greedy: np.ndarray | None = None,
     ) -> dict[str, Any]:
         """Count a consumed batch of whole episodes; returns the figures every trainer logs first for it
-        (`wall_s` as the caller has set it), in metrics.csv's column order."""
+        (`wall_s` as the caller has set it), in metrics.csv's column order. With `sent_greedy` (the grid's
+        trainers), also the rolling length of the episodes whose messages were sampled: from `greedy_senders_from`
+        on, the rolling length mixes in the greedy senders' episodes, which are long where the words have not
+        formed yet (32x32 at halfway), so it jumps up without the sampled play getting any worse."""
         self.batches += batches
         self.episodes += len(length)
         self.agent_steps += agent_steps
         self.recent.extend(int(x) for x in length)
         self.recent_return.extend(float(x) for x in team_return)
-        return {
+        row = {
             "batch": self.batches,
             "episodes": self.episodes,
             "agent_steps": self.agent_steps,
@@ -342,6 +362,10 @@ class Progress:
             "charts/episode_length_rolling": self.rolling_length,
             "charts/team_return": float(np.mean(team_return)),
         }
+        if sent_greedy is not None:
+            self.recent_sampled.extend(int(x) for x in length[~np.asarray(sent_greedy, dtype=bool)])
+            row[SAMPLED_ROLLING] = float(np.mean(self.recent_sampled)) if self.recent_sampled else None
+        return row
 
     @property
     def rolling_length(self) -> float | None:
@@ -354,6 +378,7 @@ class Progress:
             "wall_s": self.wall_s,
             "recent_lengths": torch.tensor(list(self.recent), dtype=torch.int64),
             "recent_returns": torch.tensor(list(self.recent_return), dtype=torch.float64),
+            "recent_sampled_lengths": torch.tensor(list(self.recent_sampled), dtype=torch.int64),
         }
 
     def restore(self, state: dict[str, Any]) -> None:
@@ -361,6 +386,10 @@ class Progress:
         self.agent_steps, self.wall_s = int(state["agent_steps"]), float(state["wall_s"])
         self.recent.extend(int(x) for x in state["recent_lengths"].tolist())
         self.recent_return.extend(float(x) for x in state["recent_returns"].tolist())
+        # a checkpoint from before the column: its lengths are the best guess (equal unless greedy senders played)
+        self.recent_sampled.extend(
+            int(x) for x in state.get("recent_sampled_lengths", state["recent_lengths"]).tolist()
+        )
 
 
 def learner_state(learner: Any, generator: torch.Generator | None = None) -> dict[str, Any]:
