@@ -19,7 +19,10 @@ sends being 1; a bit near 0.5 is a code the sender hedges between two words, whi
 (docs/tuning.md, session 33).
 
     python benchmarks/greedy_split.py RUN [--episodes 2000] [--seed 0] [--max-period 64] [--census-only] [--detail]
-        [--stalls N]
+        [--stalls N] [--words]
+
+`--words` first counts the goals whose most likely word (the observed head's) another goal shares, and the
+neighbouring pairs among them.
 """
 
 from __future__ import annotations
@@ -188,6 +191,32 @@ def print_census(census: Counter[tuple], max_period: int, detail: bool) -> None:
         print(f"| {where} | {'yes' if changes else 'no'} | {moving if period else '-'} | {cells} | {count} |")
 
 
+def shared_words(controller: Any) -> tuple[int, int, int]:
+    """The most likely word a sender sends for each goal it can observe, with a message head that reads only that
+    goal (`message_reads` `observed`, the default): (distinct words, goals that share their word with another,
+    pairs of neighbouring goals that share one). Two neighbours on one word cost sampled play little (the word's
+    bits still vary) and can stall greedy play (docs/tuning.md, session 37)."""
+    from bitcomm.errors import ConfigError
+
+    model = controller.config.get("model", {})
+    if model.get("message_reads") != "observed":
+        raise ConfigError(
+            f"invalid run: its message head reads {model.get('message_reads')!r}, not only the observed goal, so a "
+            "goal has no word of its own; --words needs --message-reads observed"
+        )
+    task = controller.task
+    S, K, cells = task.env.size, task.channel.bits, task.env.size**2
+    planes = np.zeros((cells, 2, S, S), np.uint8)
+    planes[:, 0, 0, 0] = 1  # where the sender stands: the head does not read it
+    planes[np.arange(cells), 1, np.arange(cells) // S, np.arange(cells) % S] = 1
+    _, bits = controller.act(planes, np.zeros((cells, task.slots, K), np.uint8), greedy=True)
+    word = np.packbits(bits, axis=1, bitorder="little").view(np.uint8) @ (256 ** np.arange(-(-K // 8)))
+    grid = word.reshape(S, S)
+    pairs = int((grid[:, 1:] == grid[:, :-1]).sum() + (grid[1:] == grid[:-1]).sum())
+    _, index, counts = np.unique(word, return_inverse=True, return_counts=True)
+    return len(counts), int((counts[index] > 1).sum()), pairs
+
+
 def main() -> None:
     import torch
 
@@ -203,6 +232,7 @@ def main() -> None:
     ap.add_argument("--census-only", action="store_true", help="skip the four-way table (cheaper on large grids)")
     ap.add_argument("--detail", action="store_true", help="also list the census by kind of cycle")
     ap.add_argument("--stalls", type=int, default=0, help="show this many stalled greedy episodes (default 0)")
+    ap.add_argument("--words", action="store_true", help="also count the goals that share a most likely word")
     a = ap.parse_args()
     if a.episodes < 1:
         ap.error(f"--episodes {a.episodes}: must be >= 1")
@@ -215,6 +245,15 @@ def main() -> None:
         controller = Controller.load(a.run, seed=a.seed)
     except ConfigError as err:
         ap.error(str(err))
+    if a.words:
+        try:
+            distinct, sharing, pairs = shared_words(controller)
+        except ConfigError as err:
+            ap.error(str(err))
+        cells = controller.task.env.size**2
+        print(
+            f"most likely words: {distinct} for {cells} goals; {sharing} goals share theirs; {pairs} neighbouring pairs"
+        )
     if not a.census_only:
         print_split(a.run, a.episodes, a.seed)
     greedy, stalls = watching_stalls(BatchedPolicy(ControllerAgent(controller, greedy=True)), controller.task, a.stalls)

@@ -192,6 +192,32 @@ def _benchmark(name: str) -> Any:
     return module
 
 
+def test_shared_words_counts_the_goals_on_one_word_and_the_neighbours_among_them() -> None:
+    """A 3x3 grid, 4 bits: the sender's word is the goal's cell index, except that cells 0 and 1 (neighbours) and
+    4 and 8 (not neighbours) share a word: 7 words, 4 goals sharing, 1 neighbouring pair."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.errors import ConfigError
+
+    shared_words = _benchmark("greedy_split").shared_words
+    task = TaskConfig(EnvConfig(size=3), ChannelConfig(bits=4))
+    word_of = {0: 1, 8: 4}
+
+    def act(planes: np.ndarray, received: np.ndarray, greedy: bool) -> tuple[np.ndarray, np.ndarray]:
+        assert greedy and received.shape == (9, task.slots, 4) and not received.any()
+        goal = planes[:, 1].reshape(9, 9).argmax(1)
+        words = np.array([word_of.get(int(g), int(g)) for g in goal])
+        return np.zeros(9, np.int64), ((words[:, None] >> np.arange(4)) & 1).astype(np.uint8)
+
+    controller = SimpleNamespace(task=task, act=act, config={"model": {"message_reads": "observed"}})
+    assert shared_words(controller) == (7, 4, 1)
+    with pytest.raises(ConfigError, match="--message-reads observed"):
+        shared_words(SimpleNamespace(task=task, act=act, config={"model": {"message_reads": "all"}}))
+
+
 def test_the_cycle_census_names_the_period_of_each_episode_that_never_ends() -> None:
     from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
