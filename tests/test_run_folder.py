@@ -523,6 +523,10 @@ def test_the_rolling_length_of_sampled_messages_leaves_out_the_greedy_senders_ep
     row = prog.add_batch(np.array([90, 50]), np.zeros(2), 280, sent_greedy=np.array([True, False]))
     assert row["charts/episode_length_rolling"] == 40 and row[SAMPLED_ROLLING] == (30 + 40 + 50) / 3
     assert SAMPLED_ROLLING not in prog.add_batch(np.array([5]), np.zeros(1), 10)  # an env run: no such episodes
+    greedy_only = Progress().add_batch(np.array([5, 6]), np.zeros(2), 22, sent_greedy=np.array([True, True]))
+    assert (
+        SAMPLED_ROLLING not in greedy_only
+    )  # nothing to average yet: no column rather than a None TensorBoard refuses
     resumed = Progress()
     resumed.restore({"episodes": 7, "batches": 3, **prog.state()})
     assert list(resumed.recent_sampled) == list(prog.recent_sampled) == [30, 40, 50]

@@ -364,7 +364,8 @@ class Progress:
         }
         if sent_greedy is not None:
             self.recent_sampled.extend(int(x) for x in length[~np.asarray(sent_greedy, dtype=bool)])
-            row[SAMPLED_ROLLING] = float(np.mean(self.recent_sampled)) if self.recent_sampled else None
+            if self.recent_sampled:  # none yet where every sender has been greedy from the first batch
+                row[SAMPLED_ROLLING] = float(np.mean(self.recent_sampled))
         return row
 
     @property
