@@ -347,7 +347,7 @@ class Progress:
         (`wall_s` as the caller has set it), in metrics.csv's column order. With `sent_greedy` (the grid's
         trainers), also the rolling length of the episodes whose messages were sampled: from `greedy_senders_from`
         on, the rolling length mixes in the greedy senders' episodes, which are long where the words have not
-        formed yet (32x32 at halfway), so it jumps up without the sampled play getting any worse."""
+        formed yet (32x32 at halfway), so it jumps up there whatever the sampled play does."""
         self.batches += batches
         self.episodes += len(length)
         self.agent_steps += agent_steps
