@@ -196,6 +196,7 @@ def shared_words(controller: Any) -> tuple[int, int, int]:
     goal (`message_reads` `observed`, the default): (distinct words, goals that share their word with another,
     pairs of neighbouring goals that share one). Two neighbours on one word cost sampled play little (the word's
     bits still vary) and can stall greedy play (docs/tuning.md, session 37)."""
+    from bitcomm.channel.core import bits_to_index
     from bitcomm.errors import ConfigError
 
     model = controller.config.get("model", {})
@@ -210,7 +211,7 @@ def shared_words(controller: Any) -> tuple[int, int, int]:
     planes[:, 0, 0, 0] = 1  # where the sender stands: the head does not read it
     planes[np.arange(cells), 1, np.arange(cells) // S, np.arange(cells) % S] = 1
     _, bits = controller.act(planes, np.zeros((cells, task.slots, K), np.uint8), greedy=True)
-    word = np.packbits(bits, axis=1, bitorder="little").view(np.uint8) @ (256 ** np.arange(-(-K // 8)))
+    word = bits_to_index(bits)
     grid = word.reshape(S, S)
     pairs = int((grid[:, 1:] == grid[:, :-1]).sum() + (grid[1:] == grid[:-1]).sum())
     _, index, counts = np.unique(word, return_inverse=True, return_counts=True)
