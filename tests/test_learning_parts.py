@@ -497,6 +497,47 @@ def test_reading_the_observations_once_per_update_makes_the_same_update(encoder,
     assert all(torch.equal(a, b) for a, b in zip(trained(True), trained(False), strict=True))
 
 
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.float32, torch.float64, torch.bfloat16])
+def test_distinct_rows_give_back_every_row_bit_for_bit(dtype, monkeypatch):
+    from bitcomm.learn import distinct
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randint(0, 3, (200, 5), generator=g).to(dtype)
+    rows, inverse = distinct.distinct_rows(x)
+    assert torch.equal(rows[inverse], x)
+    assert torch.equal(inverse[:, None] == inverse[None], (x[:, None] == x[None]).all(-1))  # equal rows share one
+    # a collision of the hash (every row on one key here) is caught, and the rows are then sorted whole
+    monkeypatch.setattr(distinct.torch, "randint", lambda low, high, size, **_: torch.zeros(size, dtype=torch.long))
+    rows2, inverse2 = distinct.distinct_rows(x)
+    assert torch.equal(rows2[inverse2], x) and len(rows2) == len(rows)
+
+
+@pytest.mark.parametrize("messages", ["bitwise", "onehot"])
+def test_a_message_head_of_its_own_reads_each_distinct_observation_once_with_the_same_values_and_gradients(
+    messages,
+):
+    """`message_reads` `observed` sees few distinct inputs (a goal per episode): the update runs its layers over
+    those (`Learner._distinct_observed`) and gathers them to the steps, as a speed-up, not a change."""
+    torch.manual_seed(0)
+    cfg = make_train_config("reinforced", TINY, num_envs=16, messages=messages)
+    learner = Learner(cfg)
+    ro = Collector(TINY, 16).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    observed = learner._distinct_observed(ro)
+    assert observed is not None and len(observed.rows) <= 2 * 16  # a goal seen per agent and episode
+    cols = torch.tensor([3, 0, 9, 12, 5])
+    weights = torch.randn(ro.valid[:, cols].sum() * learner.n, learner.policy.head.out_features)
+    trunk = list(learner.policy.message_trunk.parameters()) + list(learner.policy.message_logits.parameters())
+    logits, grads = [], []
+    for distinct in (observed, None):
+        fw = learner._forward(ro, cols, BatchFeatures(learner._policy_features(ro), None, distinct))
+        logits.append(fw.msg_logits)
+        grads.append(torch.autograd.grad((weights * fw.msg_logits).sum(), trunk))
+    assert torch.allclose(logits[0], logits[1], atol=1e-6)
+    assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(*grads, strict=True))
+    assert Learner(make_train_config("reinforced", TINY, message_reads="all"))._distinct_observed(ro) is None
+    assert Learner(make_train_config("reinforced", TINY, encoder="conv"))._distinct_observed(ro) is None
+
+
 @pytest.mark.parametrize("head", [OneHotHead(4), BitwiseHead(4)], ids=lambda h: h.name)
 def test_log_prob_and_entropy_together_equal_each_alone_in_value_and_gradient(head):
     g = torch.Generator().manual_seed(0)

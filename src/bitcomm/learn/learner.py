@@ -21,6 +21,7 @@ import torch
 from bitcomm.learn.beside import start
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.distinct import distinct_rows
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
 from bitcomm.learn.move_decay import MoveDecay
 from bitcomm.learn.objectives import Routes, StepBatch, Term, clip_groups, critic_mse, policy_terms
@@ -29,15 +30,25 @@ from bitcomm.learn.rollout import Rollout
 from bitcomm.policies.networks import CriticNet, PolicyNet
 
 
+class DistinctObserved(NamedTuple):
+    """A message head of its own (`message_reads` `observed`) over a batch: its input features for each distinct
+    observation, `rows (U, w)`, and each agent-step's row among them, `row_of (T, B, n)` (0 at invalid steps). The
+    head's layers then run over U rows per pass, not over every agent-step (`bitcomm.learn.distinct`)."""
+
+    rows: torch.Tensor
+    row_of: torch.Tensor
+
+
 class BatchFeatures(NamedTuple):
     """The networks' reading of a batch's observations where it has no parameters (`fixed_features`: every
     encoder but `conv`), computed once per update instead of once per pass: the 4 epochs of the default recipe
-    would otherwise sum the same planes 9 times. `policy (T, B, n, flat)` (with a message head of its own, its
-    `observed_features` after the trunk's `features_width` columns), `critic (T, B, flat)`, 0 at invalid steps; None
-    for a network whose encoder learns."""
+    would otherwise sum the same planes 9 times. `policy (T, B, n, flat)`, `critic (T, B, flat)`, 0 at
+    invalid steps; None for a network whose encoder learns. `observed`: the message head's distinct inputs, where it
+    has a parameter-free head of its own (None: each pass reads the planes)."""
 
     policy: torch.Tensor | None
     critic: torch.Tensor | None
+    observed: DistinctObserved | None = None
 
 
 class _Forward(NamedTuple):
@@ -178,11 +189,17 @@ class Learner:
         if not self.policy.fixed_features:
             return None
         it, ib = ro.valid.nonzero(as_tuple=True)
-        planes = ro.planes[it, ib].flatten(0, 1)
-        flat = self.policy.observation_features(planes, None)
-        if self.policy.message_trunk is not None:
-            flat = torch.cat([flat, self.policy.observed_features(planes)], 1)
+        flat = self.policy.observation_features(ro.planes[it, ib].flatten(0, 1), None)
         return _spread(flat.view(it.shape[0], self.n, -1), ro.valid, it, ib)
+
+    @torch.no_grad()
+    def _distinct_observed(self, ro: Rollout) -> DistinctObserved | None:
+        """The distinct inputs of a parameter-free message head of its own over `ro` (`DistinctObserved`)."""
+        if self.policy.message_trunk is None or not self.policy.fixed_features:
+            return None
+        it, ib = ro.valid.nonzero(as_tuple=True)
+        rows, inverse = distinct_rows(self.policy.observed_features(ro.planes[it, ib].flatten(0, 1)))
+        return DistinctObserved(rows, _spread(inverse.view(it.shape[0], self.n), ro.valid, it, ib))
 
     @torch.no_grad()
     def _critic_features(self, ro: Rollout) -> torch.Tensor | None:
@@ -222,9 +239,9 @@ class Learner:
                 for group, base in zip(opt.param_groups, bases, strict=True):
                     group["lr"] = base * max(0.0, 1.0 - progress)
         critic_side = start(self.helper, lambda: self._critic_side(ro))  # beside the policy's features
-        policy_features = self._policy_features(ro)
+        policy_features, observed = self._policy_features(ro), self._distinct_observed(ro)
         critic_features, adv = critic_side()
-        features = BatchFeatures(policy_features, critic_features)
+        features = BatchFeatures(policy_features, critic_features, observed)
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
         clip_scales: list[float] | None = None  # measured on the update's first step, then reused
@@ -263,18 +280,23 @@ class Learner:
         # the dense encoding only for a message map; the trunk reads the bits by the head's own product
         encoded = policy.encode_received(per_agent) if policy.message_map is not None else None
 
+        observed = features.observed if features is not None else None
         with update_precision(self.cfg.update_dtype):  # what the terms compute from these passes is float32
-            planes = observed = None
+            planes = None
             if features is not None and features.policy is not None:
                 feats = features.policy[it, bc].flatten(0, 1)
-                if policy.message_trunk is not None:
-                    feats, observed = feats.split([policy.features_width, feats.shape[1] - policy.features_width], 1)
             else:  # this pass reads the planes itself (`_policy_features` reads them once where it can)
                 planes = ro.planes[it, bc].flatten(0, 1)
                 feats = policy.observation_features(planes, encoded)
             h1, h2 = policy.trunk(feats, policy.read_received(per_agent))
-            message_state = policy.message_state(planes, h2, observed)
-            msg_logits, move_logits = policy.message_logits(message_state), policy.move_logits(h2)
+            if observed is not None:  # the head's layers over each distinct input once, gathered to the steps
+                distinct = policy.message_logits(policy.message_state(None, h2, observed.rows))
+                msg_logits = distinct[observed.row_of[it, bc].flatten()]
+            else:
+                if planes is None and policy.message_trunk is not None:
+                    planes = ro.planes[it, bc].flatten(0, 1)
+                msg_logits = policy.message_logits(policy.message_state(planes, h2))
+            move_logits = policy.move_logits(h2)
         passes = (feats, h1, msg_logits, move_logits)
         return _Forward(cols, it, ib, received, encoded, *(x.float() for x in passes))
 

@@ -159,8 +159,6 @@ class PolicyNet(nn.Module):
             nn.init.zeros_(self.message_map.weight)
             nn.init.zeros_(self.message_map.bias)
         self.message_in = nn.Sequential(nn.Linear(task.slots * self.head.in_features, cfg.message_hidden), nn.ReLU())
-        self.features_width = flat
-        """Width of `observation_features`' output."""
         self.fc1 = nn.Sequential(nn.Linear(flat + cfg.message_hidden, cfg.hidden), nn.ReLU())
         self.fc2 = nn.Sequential(nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU())
         self.move_logits = nn.Linear(cfg.hidden, N_MOVES)
