@@ -513,29 +513,64 @@ def test_distinct_rows_give_back_every_row_bit_for_bit(dtype, monkeypatch):
 
 
 @pytest.mark.parametrize("messages", ["bitwise", "onehot"])
-def test_a_message_head_of_its_own_reads_each_distinct_observation_once_with_the_same_values_and_gradients(
+def test_a_message_head_of_its_own_reads_each_distinct_observation_once_with_the_same_losses_and_gradients(
     messages,
 ):
-    """`message_reads` `observed` sees few distinct inputs (a goal per episode): the update runs its layers over
-    those (`Learner._distinct_observed`) and gathers them to the steps, as a speed-up, not a change."""
+    """`message_reads` `observed` sees few distinct inputs (a goal per episode): the update runs its layers, the
+    log-probabilities, the entropies and the marginal over those (`Learner._distinct_observed`), each weighted by
+    its share of the steps: a speed-up, not a change."""
+    from bitcomm.learn.objectives import clip_groups
+
     torch.manual_seed(0)
-    cfg = make_train_config("reinforced", TINY, num_envs=16, messages=messages)
+    cfg = make_train_config("reinforced", TINY, num_envs=16, messages=messages, entropy_message=0.01)
     learner = Learner(cfg)
     ro = Collector(TINY, 16).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    adv = learner.advantages(ro)
     observed = learner._distinct_observed(ro)
     assert observed is not None and len(observed.rows) <= 2 * 16  # a goal seen per agent and episode
     cols = torch.tensor([3, 0, 9, 12, 5])
-    weights = torch.randn(ro.valid[:, cols].sum() * learner.n, learner.policy.head.out_features)
-    trunk = list(learner.policy.message_trunk.parameters()) + list(learner.policy.message_logits.parameters())
-    logits, grads = [], []
+    params = list(learner.policy.parameters())
+    runs = []
     for distinct in (observed, None):
         fw = learner._forward(ro, cols, BatchFeatures(learner._policy_features(ro), None, distinct))
-        logits.append(fw.msg_logits)
-        grads.append(torch.autograd.grad((weights * fw.msg_logits).sum(), trunk))
-    assert torch.allclose(logits[0], logits[1], atol=1e-6)
-    assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(*grads, strict=True))
+        batch = learner._batch(ro, fw, adv)
+        assert (batch.msg_rows is None) == (distinct is None)
+        losses, figures = clip_groups(learner.terms, batch)
+        grads = torch.autograd.grad(sum(losses), params, allow_unused=True)
+        runs.append((batch.msg_logits, batch.step_log_probs[1], figures, grads))
+    (logits, logp, figures, grads), (logits_, logp_, figures_, grads_) = runs
+    assert torch.allclose(logits, logits_, atol=1e-6) and torch.allclose(logp, logp_, atol=1e-5)
+    assert figures.keys() == figures_.keys() and all(
+        figures[k] == pytest.approx(figures_[k], abs=1e-5) for k in figures
+    )
+    assert {"charts/entropy_message", "charts/entropy_message_marginal"} <= figures.keys()
+    assert all((a is None) == (b is None) for a, b in zip(grads, grads_, strict=True))
+    assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(grads, grads_, strict=True) if a is not None)
     assert Learner(make_train_config("reinforced", TINY, message_reads="all"))._distinct_observed(ro) is None
     assert Learner(make_train_config("reinforced", TINY, encoder="conv"))._distinct_observed(ro) is None
+
+
+@pytest.mark.parametrize("name", ["bitwise", "onehot"])
+@pytest.mark.parametrize("bits", [1, 4])
+def test_a_weighted_marginal_over_distinct_rows_is_the_marginal_over_every_row(name, bits):
+    from bitcomm.policies.heads import marginal_entropy, row_weights
+
+    head = make_head(name, bits)
+    g = torch.Generator().manual_seed(0)
+    distinct = (2 * torch.randn(6, head.out_features, generator=g, dtype=torch.float64)).requires_grad_()
+    rows = torch.tensor([0, 3, 3, 5, 0, 0, 2, 3, 5, 2, 0])  # row 1 and row 4 unused: weight 0
+    every = marginal_entropy(head, distinct[rows])
+    weighted = marginal_entropy(head, distinct, row_weights(rows, 6))
+    assert torch.allclose(every, weighted)
+    assert torch.allclose(*(torch.autograd.grad(h, distinct)[0] for h in (every, weighted)))
+    sent = head.sample(distinct.detach()[rows], g)
+    pair, pair_of_rows = (
+        head.log_prob_and_entropy(distinct[rows], sent),
+        head.log_prob_and_entropy_of_rows(distinct, rows, sent),
+    )
+    for a, b in zip(pair, pair_of_rows, strict=True):
+        assert torch.allclose(a, b)
+        assert torch.allclose(*(torch.autograd.grad(x.sum(), distinct, retain_graph=True)[0] for x in (a, b)))
 
 
 @pytest.mark.parametrize("head", [OneHotHead(4), BitwiseHead(4)], ids=lambda h: h.name)

@@ -61,8 +61,9 @@ class _Forward(NamedTuple):
     encoded: torch.Tensor | None  # (M * n, slots * in_features): the received messages encoded (with a message map)
     feats: torch.Tensor  # (M * n, flat)
     h1: torch.Tensor
-    msg_logits: torch.Tensor
+    msg_logits: torch.Tensor  # (M * n, out), or (U, out) for the U distinct inputs of a head of its own
     move_logits: torch.Tensor
+    msg_rows: torch.Tensor | None  # (M * n,): each step's row of `msg_logits` where those are distinct inputs
 
 
 class Learner:
@@ -289,21 +290,22 @@ class Learner:
                 planes = ro.planes[it, bc].flatten(0, 1)
                 feats = policy.observation_features(planes, encoded)
             h1, h2 = policy.trunk(feats, policy.read_received(per_agent))
-            if observed is not None:  # the head's layers over each distinct input once, gathered to the steps
-                distinct = policy.message_logits(policy.message_state(None, h2, observed.rows))
-                msg_logits = distinct[observed.row_of[it, bc].flatten()]
+            msg_rows = None
+            if observed is not None:  # the head's layers over each distinct input of these columns once
+                used, msg_rows = torch.unique(observed.row_of[it, bc].flatten(), return_inverse=True)
+                msg_logits = policy.message_logits(policy.message_state(None, h2, observed.rows[used]))
             else:
                 if planes is None and policy.message_trunk is not None:
                     planes = ro.planes[it, bc].flatten(0, 1)
                 msg_logits = policy.message_logits(policy.message_state(planes, h2))
             move_logits = policy.move_logits(h2)
-        passes = (feats, h1, msg_logits, move_logits)
-        return _Forward(cols, it, ib, received, encoded, *(x.float() for x in passes))
+        feats, h1, msg_logits, move_logits = (x.float() for x in (feats, h1, msg_logits, move_logits))
+        return _Forward(cols, it, ib, received, encoded, feats, h1, msg_logits, move_logits, msg_rows)
 
     def _batch(self, ro: Rollout, fw: _Forward, adv: Advantages | None = None) -> StepBatch:
         return StepBatch(
             ro, adv, fw.cols, fw.it, fw.ib, fw.received, fw.encoded, fw.feats, fw.h1, fw.msg_logits, fw.move_logits,
-            self.policy, self.routes,
+            self.policy, self.routes, fw.msg_rows,
         )  # fmt: skip
 
     def log_probs(self, ro: Rollout, fw: _Forward | None = None) -> tuple[torch.Tensor, torch.Tensor]:

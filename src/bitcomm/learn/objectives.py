@@ -45,7 +45,7 @@ from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.estimators import Advantages, policy_gradient_loss
 from bitcomm.learn.rollout import Rollout
-from bitcomm.policies.heads import marginal_entropy, probabilities
+from bitcomm.policies.heads import marginal_entropy, probabilities, row_weights
 from bitcomm.policies.networks import PolicyNet
 
 
@@ -79,15 +79,31 @@ class StepBatch:
         move_logits: torch.Tensor,
         policy: PolicyNet,
         routes: Routes,
+        msg_rows: torch.Tensor | None = None,
     ) -> None:
         self.ro, self.adv, self.cols, self.it, self.ib = ro, adv, cols, it, ib
         self.received = received  # (M, n, slots, K)
         self.encoded = encoded  # (M * n, slots * in_features): the received messages encoded (with a message map)
         self.feats = feats  # (M * n, flat)
         self.h1 = h1
-        self.msg_logits, self.move_logits = msg_logits, move_logits  # (M * n, .)
+        self.move_logits = move_logits  # (M * n, 5)
+        # the message logits of each step (M * n, out), or of each distinct input (U, out) and each step's row
+        # among them, `msg_rows (M * n,)`: the message terms then work over the U rows
+        self.distinct_msg_logits, self.msg_rows = msg_logits, msg_rows
         self.policy, self.routes = policy, routes
         self.n = ro.moves.shape[2]
+
+    @functools.cached_property
+    def msg_logits(self) -> torch.Tensor:
+        """`(M * n, out)` message logits of each valid step's agents."""
+        rows = self.msg_rows
+        return self.distinct_msg_logits if rows is None else self.distinct_msg_logits[rows]
+
+    @functools.cached_property
+    def msg_weights(self) -> torch.Tensor | None:
+        """Each distinct message input's share of the steps (None: one row per step)."""
+        rows = self.msg_rows
+        return None if rows is None else row_weights(rows, self.distinct_msg_logits.shape[0])
 
     @functools.cached_property
     def at(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -118,7 +134,9 @@ class StepBatch:
         """`(M * n,)` log Pm(m_t) of the sent messages and the entropy of Pm, computed together (one-hot: from
         one log-softmax, see `OneHotHead.log_prob_and_entropy`)."""
         bits = self.ro.bits[self.at].flatten(0, 1)
-        return self.policy.head.log_prob_and_entropy(self.msg_logits, bits)
+        if self.msg_rows is None:
+            return self.policy.head.log_prob_and_entropy(self.msg_logits, bits)
+        return self.policy.head.log_prob_and_entropy_of_rows(self.distinct_msg_logits, self.msg_rows, bits)
 
     @functools.cached_property
     def step_advantages(self) -> Advantages:
@@ -225,7 +243,7 @@ class MarginalMessageEntropy:
     auxiliary: bool = False
 
     def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
-        h = marginal_entropy(b.policy.head, b.msg_logits)
+        h = marginal_entropy(b.policy.head, b.distinct_msg_logits, b.msg_weights)
         return -(b.n * self.weight) * h, {f"charts/{self.name}": h.item()}
 
 

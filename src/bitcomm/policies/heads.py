@@ -35,31 +35,44 @@ def probabilities(log_probs: torch.Tensor) -> torch.Tensor:
     return log_probs.clamp(min=SMALLEST_LOG_PROB).exp()
 
 
-def marginal_entropy(head: Any, logits: torch.Tensor) -> torch.Tensor:
+def marginal_entropy(head: Any, logits: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
     """H(mean_i Pm(. | s_i)): the entropy of the average message distribution of the rows of `logits (N, out)`,
     exact over all 2^K messages (K <= MAX_MARGINAL_BITS), differentiable. It is largest when different
-    senders' states put their mass on different messages; a message two states share lowers it."""
-    p = head.mean_probabilities(logits)
+    senders' states put their mass on different messages; a message two states share lowers it. `weights (N,)`,
+    summing to 1: a weighted average (each distinct row weighted by its share of the steps)."""
+    p = head.mean_probabilities(logits, weights)
     return -(p * p.clamp(min=1e-30).log()).sum()
 
 
+def row_weights(rows: torch.Tensor, count: int) -> torch.Tensor:
+    """`(N,)` indices into `count` distinct rows -> `(count,)` each distinct row's share of the N."""
+    return torch.bincount(rows, minlength=count).float() / rows.shape[0]
+
+
+def _weighted_mean(x: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    """The mean of the rows of `x (N, C)`, or their average weighted by `weights (N,)`."""
+    return x.mean(0) if weights is None else weights.to(x.dtype) @ x
+
+
 class _MeanProbability(torch.autograd.Function):
-    """`(N, C)` log-probabilities -> `(C,)` mean of `probabilities(log_probs)` over the rows, with the gradient in
-    closed form, `p * g / N`: autograd's graph of the floor, the exponential and the mean writes three more
-    `(N, C)` tensors in the backward pass (the mean's division, the floor's mask and its `where`), at K = 10 three
-    `(N, 1024)` ones. Below the floor the gradient is `e^-80 g / N` rather than 0: as negligible as the
-    probability itself."""
+    """`(N, C)` log-probabilities -> `(C,)` mean of `probabilities(log_probs)` over the rows (weighted by `(N,)`
+    weights where given), with the gradient in closed form, `p * g / N`: autograd's graph of the floor, the
+    exponential and the mean writes three more `(N, C)` tensors in the backward pass (the mean's division, the floor's
+    mask and its `where`), at K = 10 three `(N, 1024)` ones. Below the floor the gradient is `e^-80 g / N` rather
+    than 0: as negligible as the probability itself."""
 
     @staticmethod
-    def forward(ctx: Any, log_probs: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx: Any, log_probs: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:  # type: ignore[override]
         p = probabilities(log_probs)
-        ctx.save_for_backward(p)
-        return p.mean(0)
+        ctx.save_for_backward(p, weights)
+        return _weighted_mean(p, weights)
 
     @staticmethod
-    def backward(ctx: Any, grad: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        (p,) = ctx.saved_tensors
-        return p * (grad / p.shape[0])
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor, None]:  # type: ignore[override]
+        p, weights = ctx.saved_tensors
+        if weights is None:
+            return p * (grad / p.shape[0]), None
+        return p * grad * weights.to(p.dtype)[:, None], None
 
 
 def check_marginal_bits(weight: float, bits: int) -> None:
@@ -109,8 +122,9 @@ class BitwiseHead:
             self._which_terms[key] = torch.cat([codes.T, 1 - codes.T])
         return terms @ self._which_terms[key]
 
-    def mean_probabilities(self, logits: torch.Tensor) -> torch.Tensor:
-        """`(N, K)` logits -> `(2^K,)` mean over the rows of every message's probability (by index). A message's
+    def mean_probabilities(self, logits: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+        """`(N, K)` logits -> `(2^K,)` mean over the rows of every message's probability (by index; weighted by
+        `weights (N,)`, summing to 1, where given). A message's
         probability is the product of its first K // 2 bits' and its last bits' probabilities, so the mean is one
         `(2^(K//2), N) x (N, 2^(K - K//2))` product: at K = 7 it writes `(N, 8 + 16)` probabilities where the
         every-message table writes `(N, 128)`, at K = 10 64 against 1,024 (that table was a third of a 32x32
@@ -118,10 +132,12 @@ class BitwiseHead:
         message below e^-160 counts as 0."""
         first = self.bits // 2
         if first == 0:  # K = 1: one half
-            return probabilities(self.log_prob_of_terms(self.log_prob_terms(logits))).mean(0)
+            return _weighted_mean(probabilities(self.log_prob_of_terms(self.log_prob_terms(logits))), weights)
         parts = logits.split([first, self.bits - first], -1)
         a, b = (probabilities(self.log_prob_of_terms(self.log_prob_terms(part))) for part in parts)
-        return (a.T @ b).flatten() / logits.shape[0]
+        if weights is None:
+            return (a.T @ b).flatten() / logits.shape[0]
+        return ((a * weights.to(a.dtype)[:, None]).T @ b).flatten()
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         p = torch.sigmoid(logits)
@@ -130,6 +146,13 @@ class BitwiseHead:
     def log_prob_and_entropy(self, logits: torch.Tensor, bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """`log_prob(logits, bits)` and `entropy(logits)`, what an update needs of every sent message."""
         return self.log_prob(logits, bits), self.entropy(logits)
+
+    def log_prob_and_entropy_of_rows(
+        self, logits: torch.Tensor, rows: torch.Tensor, bits: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`log_prob_and_entropy(logits[rows], bits)` for `(U, K)` distinct logits and `(N,)` rows: K terms a row,
+        as cheap gathered as not."""
+        return self.log_prob_and_entropy(logits[rows], bits)
 
     def sample(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         u = torch.rand(logits.shape, generator=generator, device=logits.device)
@@ -183,9 +206,10 @@ class OneHotHead:
     def log_prob_of_terms(self, terms: torch.Tensor) -> torch.Tensor:
         return terms
 
-    def mean_probabilities(self, logits: torch.Tensor) -> torch.Tensor:
-        """`(N, 2^K)` logits -> `(2^K,)` mean over the rows of every message's probability."""
-        return _MeanProbability.apply(torch.log_softmax(logits, -1))
+    def mean_probabilities(self, logits: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+        """`(N, 2^K)` logits -> `(2^K,)` mean over the rows of every message's probability (weighted by `weights
+        (N,)`, summing to 1, where given)."""
+        return _MeanProbability.apply(torch.log_softmax(logits, -1), weights)
 
     def entropy(self, logits: torch.Tensor) -> torch.Tensor:
         logp = torch.log_softmax(logits, -1)
@@ -196,6 +220,15 @@ class OneHotHead:
         form: over 2^K outputs, autograd's graph of the two (two log-softmaxes, the gather's zero-filled
         gradient, the entropy's products) is most of a one-hot update's time (docs/tuning.md, session 16)."""
         return _LogProbAndEntropy.apply(logits, bits_to_index(bits))
+
+    def log_prob_and_entropy_of_rows(
+        self, logits: torch.Tensor, rows: torch.Tensor, bits: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`log_prob_and_entropy(logits[rows], bits)` for `(U, 2^K)` distinct logits and `(N,)` rows, from one
+        log-softmax of the U rows: the `(N, 2^K)` tables of every row are what it saves."""
+        logp = torch.log_softmax(logits, -1)
+        entropy = -(probabilities(logp) * logp).sum(-1)
+        return logp[rows, bits_to_index(bits)], entropy[rows]
 
     def sample(self, logits: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """By the inverse of the cumulative distribution: one uniform number per message, where
