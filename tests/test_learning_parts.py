@@ -497,6 +497,20 @@ def test_reading_the_observations_once_per_update_makes_the_same_update(encoder,
     assert all(torch.equal(a, b) for a, b in zip(trained(True), trained(False), strict=True))
 
 
+@pytest.mark.parametrize("encoder", ["marginals", "cells"])
+def test_a_batch_s_planes_read_in_chunks_of_steps_read_as_they_do_whole(encoder, monkeypatch):
+    from bitcomm.learn import learner as learner_module
+
+    learner = Learner(make_train_config("reinforced", TINY, num_envs=8, encoder=encoder))
+    ro = Collector(TINY, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    whole = learner._policy_features(ro), learner._critic_features(ro), learner._distinct_observed(ro)
+    assert learner_module.CHUNK_ELEMENTS >= ro.state[0, 0].numel() * ro.valid.sum()  # TINY's planes: one chunk
+    monkeypatch.setattr(learner_module, "CHUNK_ELEMENTS", 3 * ro.state[0, 0].numel() - 1)  # 2 steps a chunk
+    chunked = learner._policy_features(ro), learner._critic_features(ro), learner._distinct_observed(ro)
+    assert torch.allclose(whole[0], chunked[0]) and torch.allclose(whole[1], chunked[1])
+    assert torch.equal(whole[2].rows[whole[2].row_of], chunked[2].rows[chunked[2].row_of])
+
+
 @pytest.mark.parametrize("dtype", [torch.uint8, torch.float32, torch.float64, torch.bfloat16])
 def test_distinct_rows_give_back_every_row_bit_for_bit(dtype, monkeypatch):
     from bitcomm.learn import distinct
