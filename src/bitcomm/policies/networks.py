@@ -67,8 +67,9 @@ class ModelConfig:
     and with `greedy_senders` greedy play ends within 1.10x of the oracle on every seed (session 34): the
     `reinforced` recipe's head since session 35 (`all` stays this config's default, the paper's head)."""
     sender_hidden: int = 128
-    """Width of the message head's own two layers (`message_reads` `observed`). They cost the policy about as much
-    as its own trunk (each agent-step runs both), so a narrower pair trains more agent-steps a second."""
+    """Width of the message head's own two layers (`message_reads` `observed`). In acting they cost about as much as
+    the policy's own trunk (each agent-step runs both); an update runs them once per distinct goal seen
+    (`bitcomm.learn.distinct`), so there a narrower pair saves little."""
     message_map: bool = False
     """Also decode each received message into a map over the grid's cells (one linear layer; its most
     likely cell as a one-hot plane, with the softmax's gradient) stacked beside the observation planes:
