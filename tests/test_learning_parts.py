@@ -460,7 +460,7 @@ def test_the_policy_gradient_term_reads_its_minibatch_s_own_steps(clip):
     with torch.no_grad():
         batch = learner._batch(
             ro,
-            learner._forward(ro, cols, BatchFeatures(learner._policy_features(ro), learner._critic_features(ro))),
+            learner._forward(ro, cols, BatchFeatures(learner._policy_reads(ro)[0], learner._critic_features(ro))),
             adv,
         )
         loss, _ = PolicyGradient(clip)(batch)
@@ -478,7 +478,7 @@ def test_the_policy_gradient_term_reads_its_minibatch_s_own_steps(clip):
 @pytest.mark.parametrize("encoder", ["conv", "marginals", "cells"])
 @pytest.mark.parametrize("estimator", ["standard", "improved"])
 def test_reading_the_observations_once_per_update_makes_the_same_update(encoder, estimator, monkeypatch):
-    """The parameter-free encoders are read once per batch (`Learner._policy_features`, `_critic_features`): a
+    """The parameter-free encoders are read once per batch (`Learner._policy_reads`, `_critic_features`): a
     speed-up, not a change."""
 
     def trained(read_once: bool) -> list[torch.Tensor]:
@@ -486,7 +486,8 @@ def test_reading_the_observations_once_per_update_makes_the_same_update(encoder,
         cfg = make_train_config("reinforced", TINY, num_envs=8, encoder=encoder, estimator=estimator)
         learner = Learner(cfg)
         if not read_once:  # each pass reads the planes itself
-            monkeypatch.setattr(learner, "_policy_features", lambda ro: None)
+            reads = learner._policy_reads  # the message head's distinct inputs kept: they round otherwise
+            monkeypatch.setattr(learner, "_policy_reads", lambda ro: (None, reads(ro)[1]))
             monkeypatch.setattr(learner, "_critic_features", lambda ro: None)
         generator = torch.Generator().manual_seed(0)
         learner.update(Collector(TINY, 8).collect(learner.policy, np.random.SeedSequence(0), generator), generator)
@@ -503,12 +504,12 @@ def test_a_batch_s_planes_read_in_chunks_of_steps_read_as_they_do_whole(encoder,
 
     learner = Learner(make_train_config("reinforced", TINY, num_envs=8, encoder=encoder))
     ro = Collector(TINY, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
-    whole = learner._policy_features(ro), learner._critic_features(ro), learner._distinct_observed(ro)
+    whole = *learner._policy_reads(ro), learner._critic_features(ro)
     assert learner_module.CHUNK_ELEMENTS >= ro.state[0, 0].numel() * ro.valid.sum()  # TINY's planes: one chunk
     monkeypatch.setattr(learner_module, "CHUNK_ELEMENTS", 3 * ro.state[0, 0].numel() - 1)  # 2 steps a chunk
-    chunked = learner._policy_features(ro), learner._critic_features(ro), learner._distinct_observed(ro)
-    assert torch.allclose(whole[0], chunked[0]) and torch.allclose(whole[1], chunked[1])
-    assert torch.equal(whole[2].rows[whole[2].row_of], chunked[2].rows[chunked[2].row_of])
+    chunked = *learner._policy_reads(ro), learner._critic_features(ro)
+    assert torch.allclose(whole[0], chunked[0]) and torch.allclose(whole[2], chunked[2])
+    assert torch.equal(whole[1].rows[whole[1].row_of], chunked[1].rows[chunked[1].row_of])
 
 
 @pytest.mark.parametrize("dtype", [torch.uint8, torch.float32, torch.float64, torch.bfloat16])
@@ -531,7 +532,7 @@ def test_a_message_head_of_its_own_reads_each_distinct_observation_once_with_the
     messages,
 ):
     """`message_reads` `observed` sees few distinct inputs (a goal per episode): the update runs its layers, the
-    log-probabilities, the entropies and the marginal over those (`Learner._distinct_observed`), each weighted by
+    log-probabilities, the entropies and the marginal over those (`Learner._policy_reads`), each weighted by
     its share of the steps: a speed-up, not a change."""
     from bitcomm.learn.objectives import clip_groups
 
@@ -540,13 +541,13 @@ def test_a_message_head_of_its_own_reads_each_distinct_observation_once_with_the
     learner = Learner(cfg)
     ro = Collector(TINY, 16).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     adv = learner.advantages(ro)
-    observed = learner._distinct_observed(ro)
+    features, observed = learner._policy_reads(ro)
     assert observed is not None and len(observed.rows) <= 2 * 16  # a goal seen per agent and episode
     cols = torch.tensor([3, 0, 9, 12, 5])
     params = list(learner.policy.parameters())
     runs = []
     for distinct in (observed, None):
-        fw = learner._forward(ro, cols, BatchFeatures(learner._policy_features(ro), None, distinct))
+        fw = learner._forward(ro, cols, BatchFeatures(features, None, distinct))
         batch = learner._batch(ro, fw, adv)
         assert (batch.msg_rows is None) == (distinct is None)
         losses, figures = clip_groups(learner.terms, batch)
@@ -560,8 +561,8 @@ def test_a_message_head_of_its_own_reads_each_distinct_observation_once_with_the
     assert {"charts/entropy_message", "charts/entropy_message_marginal"} <= figures.keys()
     assert all((a is None) == (b is None) for a, b in zip(grads, grads_, strict=True))
     assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(grads, grads_, strict=True) if a is not None)
-    assert Learner(make_train_config("reinforced", TINY, message_reads="all"))._distinct_observed(ro) is None
-    assert Learner(make_train_config("reinforced", TINY, encoder="conv"))._distinct_observed(ro) is None
+    assert Learner(make_train_config("reinforced", TINY, message_reads="all"))._policy_reads(ro)[1] is None
+    assert Learner(make_train_config("reinforced", TINY, encoder="conv"))._policy_reads(ro) == (None, None)
 
 
 @pytest.mark.parametrize("name", ["bitwise", "onehot"])

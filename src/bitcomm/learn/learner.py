@@ -186,32 +186,35 @@ class Learner:
         return critic_mse(torch.cat(values, 1).float(), returns[it, ib])
 
     @torch.no_grad()
-    def _policy_features(self, ro: Rollout) -> torch.Tensor | None:
-        """The parameter-free part of the policy's reading of `ro` (`BatchFeatures.policy`), for every pass."""
-        if not self.policy.fixed_features:
-            return None
+    def _policy_reads(self, ro: Rollout) -> tuple[torch.Tensor | None, DistinctObserved | None]:
+        """The parameter-free parts of the policy's reading of `ro`, for every pass, from one read of its planes:
+        the trunk's features (`BatchFeatures.policy`) and, for a message head of its own, its distinct inputs
+        (`BatchFeatures.observed`)."""
+        policy = self.policy
+        if not policy.fixed_features:
+            return None, None
         it, ib = ro.valid.nonzero(as_tuple=True)
-        read = self.policy.observation_features
-        flat = _read_steps(ro.planes, it, ib, lambda planes: read(planes.flatten(0, 1), None))
-        return _spread(flat.view(it.shape[0], self.n, -1), ro.valid, it, ib)
+        own = policy.message_trunk is not None
 
-    @torch.no_grad()
-    def _distinct_observed(self, ro: Rollout) -> DistinctObserved | None:
-        """The distinct inputs of a parameter-free message head of its own over `ro` (`DistinctObserved`)."""
-        if self.policy.message_trunk is None or not self.policy.fixed_features:
-            return None
-        it, ib = ro.valid.nonzero(as_tuple=True)
-        rows, inverse = distinct_rows(
-            _read_steps(ro.planes, it, ib, lambda planes: self.policy.observed_features(planes.flatten(0, 1)))
-        )
-        return DistinctObserved(rows, _spread(inverse.view(it.shape[0], self.n), ro.valid, it, ib))
+        def read(planes: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            flat = planes.flatten(0, 1)
+            trunk = policy.observation_features(flat, None)
+            return (trunk, policy.observed_features(flat)) if own else (trunk,)
+
+        reads = _read_steps(ro.planes, it, ib, read)
+        features = _spread(reads[0].view(it.shape[0], self.n, -1), ro.valid, it, ib)
+        if not own:
+            return features, None
+        rows, inverse = distinct_rows(reads[1])
+        return features, DistinctObserved(rows, _spread(inverse.view(it.shape[0], self.n), ro.valid, it, ib))
 
     @torch.no_grad()
     def _critic_features(self, ro: Rollout) -> torch.Tensor | None:
         if not self.critic.fixed_features:
             return None
         it, ib = ro.valid.nonzero(as_tuple=True)
-        return _spread(_read_steps(ro.state, it, ib, self.critic.state_features), ro.valid, it, ib)
+        (features,) = _read_steps(ro.state, it, ib, lambda state: (self.critic.state_features(state),))
+        return _spread(features, ro.valid, it, ib)
 
     def _critic_side(self, ro: Rollout) -> tuple[torch.Tensor | None, Advantages]:
         """The critic's features of `ro` and the advantages from its baselines: what an update needs before its
@@ -244,7 +247,7 @@ class Learner:
                 for group, base in zip(opt.param_groups, bases, strict=True):
                     group["lr"] = base * max(0.0, 1.0 - progress)
         critic_side = start(self.helper, lambda: self._critic_side(ro))  # beside the policy's features
-        policy_features, observed = self._policy_features(ro), self._distinct_observed(ro)
+        policy_features, observed = self._policy_reads(ro)
         critic_features, adv = critic_side()
         features = BatchFeatures(policy_features, critic_features, observed)
         B = ro.valid.shape[1]
@@ -290,7 +293,7 @@ class Learner:
             planes = None
             if features is not None and features.policy is not None:
                 feats = features.policy[it, bc].flatten(0, 1)
-            else:  # this pass reads the planes itself (`_policy_features` reads them once where it can)
+            else:  # this pass reads the planes itself (`_policy_reads` reads them once where it can)
                 planes = ro.planes[it, bc].flatten(0, 1)
                 feats = policy.observation_features(planes, encoded)
             h1, h2 = policy.trunk(feats, policy.read_received(per_agent))
@@ -380,13 +383,14 @@ makes of a chunk's bytes are summed while they are in the cache."""
 
 
 def _read_steps(
-    x: torch.Tensor, it: torch.Tensor, ib: torch.Tensor, read: Callable[[torch.Tensor], torch.Tensor]
-) -> torch.Tensor:
-    """`read(x[it, ib])` for `(T, B, ...)` observations, in chunks of steps along `it, ib`, rows concatenated: a
-    32x32 batch's planes are 30 MB as bytes and four times that as floats, and converting them whole (then summing)
-    cost about twice what it costs chunk by chunk."""
+    x: torch.Tensor, it: torch.Tensor, ib: torch.Tensor, read: Callable[[torch.Tensor], tuple[torch.Tensor, ...]]
+) -> tuple[torch.Tensor, ...]:
+    """`read(x[it, ib])` for `(T, B, ...)` observations, in chunks of steps along `it, ib`, each of its outputs'
+    rows concatenated: a 32x32 batch's planes are 30 MB as bytes and four times that as floats, and converting them
+    whole (then summing) cost about twice what it costs chunk by chunk."""
     chunk = max(1, CHUNK_ELEMENTS // max(1, x[0, 0].numel()))
-    return torch.cat([read(x[t, b]) for t, b in zip(it.split(chunk), ib.split(chunk), strict=True)])
+    reads = [read(x[t, b]) for t, b in zip(it.split(chunk), ib.split(chunk), strict=True)]
+    return tuple(torch.cat(parts) for parts in zip(*reads, strict=True))
 
 
 def _spread(x: torch.Tensor, valid: torch.Tensor, it: torch.Tensor, ib: torch.Tensor) -> torch.Tensor:
