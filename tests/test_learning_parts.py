@@ -679,3 +679,20 @@ def test_the_marginal_entropy_bonus_needs_at_most_4096_messages():
     assert make_train_config("reinforced", wide, entropy_message=0.003).entropy_message == 0.003
     with pytest.raises(ConfigError, match="entropy-message-marginal=0.1: .* K <= 12 bits \\(K = 13\\)"):
         make_train_config("reinforced", wide, entropy_message_marginal=0.1)
+
+
+def test_acting_reads_a_message_head_of_its_own_once_per_episode_as_each_step_would(monkeypatch):
+    """The observed goal is the head's only input and an episode keeps it: the collector computes its logits at
+    the first step (`PolicyNet.observed_message_logits`), and every step's recorded message log-probability is the
+    one the whole network gives that step."""
+    learner = Learner(make_train_config("reinforced", TINY, num_envs=8))
+    net, calls = learner.policy, []
+    real = net.observed_message_logits
+    monkeypatch.setattr(net, "observed_message_logits", lambda planes: calls.append(len(planes)) or real(planes))
+    ro = Collector(TINY, 8).collect(net, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    assert calls == [8 * TINY.env.n_agents] and ro.valid.sum(0).max() > 1
+    it, ib = ro.valid.nonzero(as_tuple=True)
+    with torch.no_grad():
+        _, logits = net(ro.planes[it, ib].flatten(0, 1), ro.received[it, ib].flatten(0, 1))
+    logp = net.head.log_prob(logits, ro.bits[it, ib].flatten(0, 1)).view(it.shape[0], -1)
+    assert torch.allclose(logp, ro.logp_message[it, ib], atol=1e-6)

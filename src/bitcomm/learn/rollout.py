@@ -79,9 +79,17 @@ class Collector:
         t = 0
         running = np.ones(B, dtype=bool)  # slots whose first episode has not ended: the only ones the policy plays
         sent_greedy = torch.arange(B) < greedy_senders
+        # a message head of its own reads only the observed goal, which each slot's (first) episode keeps: its
+        # logits are computed at the first step, for every step (a third to a half of acting's cost per step)
+        episode_logits: torch.Tensor | None = None
 
         def policy(obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+            nonlocal episode_logits
             self.planes[t], self.received[t], self.state[t] = obs.planes, obs.received, obs.state
+            if t == 0 and net.message_trunk is not None:
+                with torch.no_grad():
+                    logits = net.observed_message_logits(torch.from_numpy(obs.planes).flatten(0, 1))
+                episode_logits = logits.view(B, self.task.env.n_agents, -1)
             # late in training most first episodes end long before the batch's last one: a slot's later
             # episodes are never learned from, so they are not acted for (they stand still, silent)
             rows = slice(None) if running.all() else np.flatnonzero(running)
@@ -92,6 +100,7 @@ class Collector:
                 torch.from_numpy(self.received[t][rows]).flatten(0, 1),
                 generator=generator,
                 greedy_messages=greedy,
+                message_logits=None if episode_logits is None else episode_logits[rows].flatten(0, 1),
             )
             for buffer, x in zip(
                 (self.moves[t], self.bits[t], self.logp[0, t], self.logp[1, t]),

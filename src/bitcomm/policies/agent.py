@@ -18,13 +18,19 @@ def act(
     greedy: bool = False,
     generator: torch.Generator | None = None,
     greedy_messages: torch.Tensor | None = None,
+    message_logits: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Moves `(N,)`, bits `(N, K)` and their log-probabilities for `(N, 2, S, S)` planes and `(N, slots, K)` bits.
 
     Sampling (the default) is how the policy was trained; `greedy` takes the most likely move and message;
-    `greedy_messages (N,)` bool, the most likely message of those rows only (their moves sampled).
+    `greedy_messages (N,)` bool, the most likely message of those rows only (their moves sampled);
+    `message_logits (N, out)`, the rows' message logits where the caller has them (`PolicyNet.observed_message_logits`,
+    once per episode): the network then runs its movement part alone.
     """
-    move_logits, message_logits = net(planes, received)
+    if message_logits is None:
+        move_logits, message_logits = net(planes, received)
+    else:
+        move_logits = net.move_logits(net.hidden(planes, received))
     if greedy:
         moves, bits = move_logits.argmax(-1), net.head.mode(message_logits)
     else:

@@ -291,11 +291,22 @@ class PolicyNet(nn.Module):
         h1 = self.fc1[1:](concat_linear(self.fc1[0], obs_features, message_features))
         return h1, self.fc2(h1)
 
+    def hidden(self, planes: torch.Tensor, received: torch.Tensor) -> torch.Tensor:
+        """The second hidden layer `h2` for `(N, 2, S, S)` planes and `(N, slots, K)` bits."""
+        encoded = self.encode_received(received) if self.message_map is not None else None
+        return self.trunk(self.observation_features(planes, encoded), self.read_received(received))[1]
+
     def forward(self, planes: torch.Tensor, received: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Move logits `(N, 5)` and message logits `(N, out)` for `(N, 2, S, S)` planes and `(N, slots, K)` bits."""
-        encoded = self.encode_received(received) if self.message_map is not None else None
-        _, h2 = self.trunk(self.observation_features(planes, encoded), self.read_received(received))
+        h2 = self.hidden(planes, received)
         return self.move_logits(h2), self.message_logits(self.message_state(planes, h2))
+
+    def observed_message_logits(self, planes: torch.Tensor) -> torch.Tensor:
+        """A message head of its own (`message_reads` `observed`): its logits `(N, out)` from the observed plane of
+        `(N, 2, S, S)` planes alone. That plane holds a goal, which an episode keeps, so an actor may compute them
+        once per episode (`bitcomm.learn.rollout.Collector`)."""
+        assert self.message_trunk is not None, "needs message_reads observed"
+        return self.message_logits(self.message_trunk(self.observed_features(planes)))
 
 
 def others_actions(moves: torch.Tensor, given: torch.Tensor) -> torch.Tensor:
