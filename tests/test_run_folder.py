@@ -25,6 +25,7 @@ from bitcomm.checkpoint import (
     load_state,
     load_weights,
     rank,
+    read_config,
     resolve,
     rolling_length,
     save_checkpoint,
@@ -206,6 +207,27 @@ def test_garbled_weights_or_state_are_refused(run: Path, capsys) -> None:
     line = refused(capsys, "eval", str(run), "--episodes", "10", naming=weights_file.name)
     assert "checksum mismatch" in line
     refused(capsys, "eval", str(weights_file), "--episodes", "10", naming="checksum mismatch")
+
+
+def test_eval_of_a_checkpoint_file_reads_its_tensors_once(run: Path, capsys, monkeypatch) -> None:
+    """`bitcomm eval FILE` chooses between a grid and a wrapped-env run from the file's metadata alone; only the
+    load that plays reads (and checks) the tensors."""
+    from bitcomm import checkpoint
+
+    file = resolve(run)
+    assert read_config(file) == load_weights(file)[1]["config"]
+    loads: list[str] = []
+    real = checkpoint.load_weights
+
+    def counting(path):  # type: ignore[no-untyped-def]
+        loads.append(str(path))
+        return real(path)
+
+    monkeypatch.setattr(checkpoint, "load_weights", counting)
+    monkeypatch.setattr("bitcomm.learn.env_run.load_weights", counting)  # where the old choice read it
+    rc, err = cli(capsys, "eval", str(file), "--episodes", "10", "--threads", "1")
+    assert rc == 0, err
+    assert loads == [str(file)]
 
 
 def test_tampered_metadata_is_refused(run: Path) -> None:

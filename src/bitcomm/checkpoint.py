@@ -380,17 +380,31 @@ def load_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], 
     for key, value in tensors.items():
         prefix, _, name = key.partition(".")
         weights.setdefault(prefix, {})[name] = value
+    config = _config(file, meta)
     try:
-        info = {
-            "config": json.loads(meta["config"]),
-            "episodes": int(meta["episodes"]),
-            "batches": int(meta["batches"]),
-        }
+        info = {"config": config, "episodes": int(meta["episodes"]), "batches": int(meta["batches"])}
     except (KeyError, ValueError) as err:
         raise _bad(file, f"not a bitcomm checkpoint (bad metadata: {err})") from None
-    if not isinstance(info["config"], dict):
-        raise _bad(file, "not a bitcomm checkpoint (its config is not a JSON object)")
     return weights, {**info, "path": str(file)}
+
+
+def _config(file: Path, meta: dict[str, str]) -> dict[str, Any]:
+    try:
+        config = json.loads(meta["config"])
+    except (KeyError, ValueError) as err:
+        raise _bad(file, f"not a bitcomm checkpoint (bad metadata: {err})") from None
+    if not isinstance(config, dict):
+        raise _bad(file, "not a bitcomm checkpoint (its config is not a JSON object)")
+    return config
+
+
+def read_config(path: Path | str) -> dict[str, Any]:
+    """The config a checkpoint (or a run folder's latest) was trained with, from its metadata alone: what a
+    command needs to choose how to load it, without reading (or checking) its tensors twice."""
+    file = resolve(path)
+    meta = _metadata(file)
+    _version(file, meta)
+    return _config(file, meta)
 
 
 def is_env_config(d: dict[str, Any]) -> bool:

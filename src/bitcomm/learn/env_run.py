@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import CHECKPOINTS, LATEST, is_env_config, load_weights
+from bitcomm.checkpoint import CHECKPOINTS, LATEST, is_env_config, load_weights, read_config
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
@@ -102,8 +102,8 @@ def env_run_config(path: Path | str) -> EnvTrainConfig | None:
     if p.is_dir() and (p / "config.json").is_file():
         record = read_json_object(p / "config.json", "config")
         return EnvTrainConfig.from_dict(record) if is_env_config(record) else None
-    _, info = load_weights(p)
-    return EnvTrainConfig.from_dict(info["config"]) if is_env_config(info["config"]) else None
+    config = read_config(p)
+    return EnvTrainConfig.from_dict(config) if is_env_config(config) else None
 
 
 def resume_env_config(out: Path, episodes: int | None = None) -> EnvTrainConfig:
