@@ -224,10 +224,31 @@ def test_eval_of_a_checkpoint_file_reads_its_tensors_once(run: Path, capsys, mon
         return real(path)
 
     monkeypatch.setattr(checkpoint, "load_weights", counting)
-    monkeypatch.setattr("bitcomm.learn.env_run.load_weights", counting)  # where the old choice read it
+    monkeypatch.setattr("bitcomm.learn.env_run.load_weights", counting, raising=False)  # where the old choice read it
     rc, err = cli(capsys, "eval", str(file), "--episodes", "10", "--threads", "1")
     assert rc == 0, err
     assert loads == [str(file)]
+
+
+def test_a_resume_reads_the_checkpoints_tensors_once(run: Path, capsys, monkeypatch) -> None:
+    """`bitcomm train --resume` takes the run's config from the checkpoint's metadata; only the load that resumes
+    reads (and checks) the tensors."""
+    from bitcomm import checkpoint
+
+    loads: list[str] = []
+    real = checkpoint.load_weights
+
+    def counting(path):  # type: ignore[no-untyped-def]
+        loads.append(str(path))
+        return real(path)
+
+    monkeypatch.setattr(checkpoint, "load_weights", counting)
+    monkeypatch.setattr(
+        "bitcomm.learn.run_folder.load_weights", counting
+    )  # where the old config and the resume read it
+    rc, err = cli(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64")
+    assert rc == 0, err
+    assert len(loads) == 1
 
 
 def test_tampered_metadata_is_refused(run: Path) -> None:

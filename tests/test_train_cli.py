@@ -117,6 +117,7 @@ def test_sync_runs_are_reproducible(tmp_path: Path) -> None:
 def test_a_move_decay_that_waited_resumes_where_it_started(tmp_path: Path) -> None:
     """The progress where a `move_decay_below` decay started is in the checkpoint: a run trained in two pieces
     ends where the unbroken one did, move scale and weights alike."""
+    from bitcomm.learn.config import TrainConfig
     from bitcomm.learn.run import train
     from bitcomm.learn.run_folder import resume_config
 
@@ -124,7 +125,12 @@ def test_a_move_decay_that_waited_resumes_where_it_started(tmp_path: Path) -> No
     options = dict(move_decay_below=100.0, anneal_episodes=BUDGET)  # starts on the second batch
     train(tiny_config(**options), tmp_path / "whole", progress=False)
     train(tiny_config(**options, episodes=BUDGET // 2), tmp_path / "pieces", progress=False)
-    train(resume_config(tmp_path / "pieces", episodes=BUDGET), tmp_path / "pieces", resume=True, progress=False)
+    train(
+        resume_config(tmp_path / "pieces", TrainConfig.from_dict, BUDGET),
+        tmp_path / "pieces",
+        resume=True,
+        progress=False,
+    )
     scales = [float(r["schedule/move_scale"]) for r in rows(tmp_path / "whole")]
     assert scales[0] == 1.0 and scales[1] == 1.0 and scales[-1] == pytest.approx(1 / 9)  # from 1/10 to 9/10
     assert learning_columns(tmp_path / "pieces") == learning_columns(tmp_path / "whole")

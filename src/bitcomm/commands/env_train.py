@@ -79,15 +79,17 @@ def env_config_from_args(args: argparse.Namespace) -> EnvTrainConfig:
 
 def train(args: argparse.Namespace) -> int:
     """Train on the env of `--env` (or resume such a run), on the torch threads the caller has set."""
+    from bitcomm.learn.env_config import EnvTrainConfig
     from bitcomm.learn.env_eval import evaluate_env
-    from bitcomm.learn.env_run import resume_env_config, train_env
+    from bitcomm.learn.env_run import train_env
+    from bitcomm.learn.run_folder import resume_config
 
     if getattr(args, "address", None) is not None:  # the Ray backend trains the grid only
         raise bad_value("address", args.address, "not used with --env")
     if args.resume:
         if args.out is None:
             raise bad_value("resume", True, "give the run folder with --out")
-        cfg = resume_env_config(args.out, args.episodes)
+        cfg = resume_config(args.out, EnvTrainConfig.from_dict, args.episodes)
         if args.env_workers is not None:  # where the copies are stepped changes no episode: a resume may change it
             cfg = dataclasses.replace(cfg, env_workers=args.env_workers)
     else:

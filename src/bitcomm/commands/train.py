@@ -78,7 +78,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.learn.config import make_train_config
+    from bitcomm.learn.config import TrainConfig, make_train_config
     from bitcomm.learn.run import train
     from bitcomm.learn.run_folder import resume_config
 
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     env_train.check_env_only(args)
     out = args.out or Path("runs") / f"{args.recipe}-{args.estimator}-{args.messages}-s{args.seed}"
     if args.resume:
-        cfg = resume_config(out, args.episodes)
+        cfg = resume_config(out, TrainConfig.from_dict, args.episodes)
     else:
         cfg = make_train_config(
             args.recipe,

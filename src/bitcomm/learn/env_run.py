@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import CHECKPOINTS, LATEST, is_env_config, load_weights, read_config
+from bitcomm.checkpoint import CHECKPOINTS, LATEST, is_env_config, read_config
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
@@ -104,12 +104,3 @@ def env_run_config(path: Path | str) -> EnvTrainConfig | None:
         return EnvTrainConfig.from_dict(record) if is_env_config(record) else None
     config = read_config(p)
     return EnvTrainConfig.from_dict(config) if is_env_config(config) else None
-
-
-def resume_env_config(out: Path, episodes: int | None = None) -> EnvTrainConfig:
-    """The config a wrapped-env run in `out` was started with, with a new budget if one is given."""
-    _, info = load_weights(out)
-    d = dict(info["config"])
-    if episodes is not None:
-        d["episodes"] = episodes
-    return EnvTrainConfig.from_dict(d)

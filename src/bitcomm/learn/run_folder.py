@@ -29,7 +29,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import torch
@@ -40,6 +40,7 @@ from bitcomm.checkpoint import (
     clean,
     load_state,
     load_weights,
+    read_config,
     refuse_nonfinite,
     resolve,
     save_checkpoint,
@@ -48,6 +49,8 @@ from bitcomm.errors import ConfigError
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
 from bitcomm.plotting import save_figure
+
+ConfigT = TypeVar("ConfigT")
 
 ROLLING = 1000
 """Episodes in the rolling mean of the progress bar, the log and the plot."""
@@ -439,13 +442,14 @@ def restore_learner(learner: Any, saved: dict[str, Any]) -> None:
         learner.move_decay.start = float(saved["move_decay_start"])
 
 
-def resume_config(out: Path, episodes: int | None = None) -> TrainConfig:
-    """The TrainConfig of the run in `out`, with a new budget if one is given."""
-    _, info = load_weights(out)
-    d = dict(info["config"])
+def resume_config(out: Path, from_dict: Callable[[dict[str, Any]], ConfigT], episodes: int | None = None) -> ConfigT:
+    """The config the run in `out` was started with (`TrainConfig.from_dict`, or a wrapped env's
+    `EnvTrainConfig.from_dict`), with a new budget if one is given. It reads the checkpoint's metadata alone:
+    `prepare` reads and checks the tensors when the run resumes."""
+    d = read_config(out)
     if episodes is not None:
         d["episodes"] = episodes
-    return TrainConfig.from_dict(d)
+    return from_dict(d)
 
 
 def has_checkpoint(out: Path) -> bool:
