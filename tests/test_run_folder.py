@@ -209,13 +209,11 @@ def test_garbled_weights_or_state_are_refused(run: Path, capsys) -> None:
     refused(capsys, "eval", str(weights_file), "--episodes", "10", naming="checksum mismatch")
 
 
-def test_eval_of_a_checkpoint_file_reads_its_tensors_once(run: Path, capsys, monkeypatch) -> None:
-    """`bitcomm eval FILE` chooses between a grid and a wrapped-env run from the file's metadata alone; only the
-    load that plays reads (and checks) the tensors."""
+def counted_loads(monkeypatch: pytest.MonkeyPatch, *sites: str) -> list[str]:
+    """The paths `load_weights` is called with from now on, counted in `bitcomm.checkpoint` and at each module in
+    `sites` that imported it by name (a site that no longer imports it is patched too, so a new import counts)."""
     from bitcomm import checkpoint
 
-    file = resolve(run)
-    assert read_config(file) == load_weights(file)[1]["config"]
     loads: list[str] = []
     real = checkpoint.load_weights
 
@@ -224,7 +222,17 @@ def test_eval_of_a_checkpoint_file_reads_its_tensors_once(run: Path, capsys, mon
         return real(path)
 
     monkeypatch.setattr(checkpoint, "load_weights", counting)
-    monkeypatch.setattr("bitcomm.learn.env_run.load_weights", counting, raising=False)  # where the old choice read it
+    for site in sites:
+        monkeypatch.setattr(f"{site}.load_weights", counting, raising=False)
+    return loads
+
+
+def test_eval_of_a_checkpoint_file_reads_its_tensors_once(run: Path, capsys, monkeypatch) -> None:
+    """`bitcomm eval FILE` chooses between a grid and a wrapped-env run from the file's metadata alone; only the
+    load that plays reads (and checks) the tensors."""
+    file = resolve(run)
+    assert read_config(file) == load_weights(file)[1]["config"]
+    loads = counted_loads(monkeypatch, "bitcomm.learn.env_run")  # where the old choice read it
     rc, err = cli(capsys, "eval", str(file), "--episodes", "10", "--threads", "1")
     assert rc == 0, err
     assert loads == [str(file)]
@@ -233,19 +241,7 @@ def test_eval_of_a_checkpoint_file_reads_its_tensors_once(run: Path, capsys, mon
 def test_a_resume_reads_the_checkpoints_tensors_once(run: Path, capsys, monkeypatch) -> None:
     """`bitcomm train --resume` takes the run's config from the checkpoint's metadata; only the load that resumes
     reads (and checks) the tensors."""
-    from bitcomm import checkpoint
-
-    loads: list[str] = []
-    real = checkpoint.load_weights
-
-    def counting(path):  # type: ignore[no-untyped-def]
-        loads.append(str(path))
-        return real(path)
-
-    monkeypatch.setattr(checkpoint, "load_weights", counting)
-    monkeypatch.setattr(
-        "bitcomm.learn.run_folder.load_weights", counting
-    )  # where the old config and the resume read it
+    loads = counted_loads(monkeypatch, "bitcomm.learn.run_folder")  # where the old config and the resume read it
     rc, err = cli(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64")
     assert rc == 0, err
     assert len(loads) == 1
