@@ -8,6 +8,11 @@ after which it first fell below 2x and 1.15x the oracle. The oracle is played on
 runs were trained on. Then, per technique (estimator + message head) and task, the mean and 95% interval over
 the runs given (Student's t, `bitcomm.studies.stats`) at each mark (of the runs that played that far), and how
 many runs reached each level.
+And per run, where its metrics.csv logs the marginal message entropy (a recipe with the marginal bonus, the
+default's), how much its messages say about what the senders see: `charts/entropy_message_marginal` (the entropy of
+a batch's average message distribution) minus `charts/entropy_message` (the average per-message entropy), a batch
+estimate of I(sender's observation; message) in nats, averaged over the logged batches within `--window` episodes of
+each mark (docs/results.md 3f reads it).
 The last line printed is one JSON object.
 
     python benchmarks/run_marks.py runs/s30-32x32-improved-onehot-seed3 runs/s30-32x32-improved-onehot-seed4 \\
@@ -17,12 +22,18 @@ The last line printed is one JSON object.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 MARKS = (25_000, 50_000, 100_000, 150_000, 200_000)
+WINDOW = 2_000
+"""Episodes either side of a mark whose logged batches the message information is averaged over."""
+INFORMATION = ("entropy_message_marginal", "entropy_message")
 
 
 def parse_marks(text: str) -> tuple[int, ...]:
@@ -43,8 +54,24 @@ def rolling_at_marks(curve: Any, marks: tuple[int, ...]) -> dict[int, float | No
     return {m: rolling_at_episodes(curve, m, "length_rolling") if m <= curve.episodes[-1] else None for m in marks}
 
 
-def run_marks(folder: Path, oracle: float | None, marks: tuple[int, ...]) -> dict[str, Any]:
-    """One run's rolling length at the marks, and its first crossings of the study's levels."""
+def information_at_marks(folder: Path, marks: tuple[int, ...], window: int) -> dict[int, float | None] | None:
+    """The batch estimate of I(sender's observation; message) in nats at each mark (None past the run's last batch,
+    as for its rolling length, or where no batch was logged within `window` episodes of it); None for a run whose
+    metrics.csv does not log the marginal message entropy."""
+    from bitcomm.studies.compare import read_columns
+
+    with (folder / "metrics.csv").open(newline="") as f:
+        header = next(csv.reader(f), [])
+    if not all(f"charts/{c}" in header for c in INFORMATION):
+        return None
+    episodes, _, marginal, per_message = read_columns(folder, INFORMATION)
+    near = {m: np.abs(episodes - m) <= window if m <= episodes[-1] else np.zeros_like(episodes, bool) for m in marks}
+    return {m: float((marginal - per_message)[rows].mean()) if rows.any() else None for m, rows in near.items()}
+
+
+def run_marks(folder: Path, oracle: float | None, marks: tuple[int, ...], window: int = WINDOW) -> dict[str, Any]:
+    """One run's rolling length at the marks, its first crossings of the study's levels, and its message
+    information at the marks."""
     from bitcomm.studies.compare import THRESHOLDS, first_below, read_curve, threshold_key
 
     curve = read_curve(folder)
@@ -54,6 +81,7 @@ def run_marks(folder: Path, oracle: float | None, marks: tuple[int, ...]) -> dic
         "wall_s": float(curve.wall_s[-1]),
         "rolling_at": rolling_at_marks(curve, marks),
         "reached": {threshold_key(t): None if oracle is None else first_below(curve, t * oracle) for t in THRESHOLDS},
+        "information_at": information_at_marks(folder, marks, window),
     }
 
 
@@ -83,6 +111,8 @@ def summarize(rows: list[dict[str, Any]], marks: tuple[int, ...]) -> dict[str, A
     out: dict[str, Any] = {"runs": len(rows)}
     played = {m: [r["rolling_at"][m] for r in rows if r["rolling_at"][m] is not None] for m in marks}
     out["rolling_at"] = {m: interval(values) for m, values in played.items()}
+    informed = [r["information_at"] for r in rows if r["information_at"] is not None]
+    out["information_at"] = {m: interval([i[m] for i in informed if i[m] is not None]) for m in marks}
     for t in THRESHOLDS:
         key = threshold_key(t)
         hits = [r["reached"][key] for r in rows if r["reached"][key] is not None]
@@ -125,6 +155,24 @@ def print_tables(groups: dict[str, dict[str, Any]], marks: tuple[int, ...]) -> N
             episodes = _interval_cell(s[k]["episodes"], s[k]["reached"], ",.0f")
             cells.append(f"{s[k]['reached']} of {s['runs']}; {episodes} ep")
         print("| " + " | ".join([*cells, ""]) + " |")
+        print_information(group, marks)
+
+
+def print_information(group: dict[str, Any], marks: tuple[int, ...]) -> None:
+    """The message information table of a group, for its runs that log it."""
+    informed = [r for r in group["per_run"] if r["information_at"] is not None]
+    if not informed:
+        return
+    print("\nI(observation; message), nats (marginal minus per-message entropy, batches near each mark)")
+    print("| run | " + " | ".join(f"at {m:,}" for m in marks) + " |")
+    print("|" + " --- |" * (len(marks) + 1))
+    for r in informed:
+        values = ("-" if r["information_at"][m] is None else f"{r['information_at'][m]:.2f}" for m in marks)
+        print(f"| {r['run']} | " + " | ".join(values) + " |")
+    s = group["summary"]["information_at"]
+    print(
+        f"| mean ± 95% over {len(informed)} | " + " | ".join(_interval_cell(s[m], len(informed)) for m in marks) + " |"
+    )
 
 
 def main() -> None:
@@ -136,12 +184,16 @@ def main() -> None:
     ap.add_argument("--marks", type=parse_marks, default=MARKS, help="episode marks, comma-separated")
     ap.add_argument("--eval-episodes", type=int, default=1000, help="the oracle's episodes (default %(default)s)")
     ap.add_argument("--eval-seed", type=int, default=1000, help="the oracle's episode seed (default %(default)s)")
+    ap.add_argument(
+        "--window", type=int, default=WINDOW, help="episodes either side of a mark for the message information"
+    )
     a = ap.parse_args()
     groups: dict[str, dict[str, Any]] = defaultdict(lambda: {"per_run": []})
     oracles: dict[str, float | None] = {}
     try:  # bad input is one line, before anything is read
         check_int("eval_episodes", a.eval_episodes, 1)
         check_int("eval_seed", a.eval_seed, 0)
+        check_int("window", a.window, 0)
         for folder in a.runs:
             if not (folder / "config.json").is_file() or not (folder / "metrics.csv").is_file():
                 raise ConfigError(f"invalid run={str(folder)!r}: needs config.json and metrics.csv (a run folder)")
@@ -152,13 +204,14 @@ def main() -> None:
                 oracles[key] = None if result is None else result.mean_episode_length
             name = f"{technique}, {task_phrase(task)}"
             groups[name]["oracle"] = oracles[key]
-            groups[name]["per_run"].append(run_marks(folder, oracles[key], a.marks))
+            groups[name]["per_run"].append(run_marks(folder, oracles[key], a.marks, a.window))
     except ConfigError as err:
         ap.error(str(err))
     for group in groups.values():
         group["summary"] = summarize(group["per_run"], a.marks)
     print_tables(groups, a.marks)
-    print(json.dumps({"marks": a.marks, "eval_episodes": a.eval_episodes, "eval_seed": a.eval_seed, **groups}))
+    print(json.dumps({"marks": a.marks, "eval_episodes": a.eval_episodes, "eval_seed": a.eval_seed, "window": a.window,
+                      **groups}))  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import importlib.util
 import json
 import os
@@ -365,7 +366,23 @@ def test_run_marks_reads_loose_runs_as_the_study_tables_do(tmp_path: Path) -> No
     assert (first["reached"]["2x"] or {}).get("episodes") == (int(episodes[below[0]]) if below.size else None)
     assert group["summary"]["rolling_at"]["24"]["n"] == 2 and group["summary"]["rolling_at"]["1000"] is None
     assert "| mean ± 95% over 2 |" in out.stdout
-    for bad, named in (([str(tmp_path / "nothing")], "run="), ([str(run), "--marks", "0"], "--marks")):
+    # what the messages say: marginal minus per-message entropy, over the batches within --window episodes
+    with (run / "metrics.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    near = [float(r["charts/entropy_message_marginal"]) - float(r["charts/entropy_message"])
+            for r in rows if abs(float(r["episodes"]) - 24) <= 2000]  # fmt: skip
+    assert first["information_at"] == {"24": pytest.approx(sum(near) / len(near)), "1000": None}
+    assert "I(observation; message)" in out.stdout
+    plain = tmp_path / "plain"  # a recipe without the marginal bonus does not log it: no information
+    train_tiny_run(plain, "--episodes", "32", "--epochs", "1", "--minibatches", "1", "--entropy-message-marginal", "0")
+    argv = [sys.executable, "benchmarks/run_marks.py", str(plain), "--marks", "16", "--eval-episodes", "50", "--window",
+            "0"]  # fmt: skip
+    out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0 and "I(observation" not in out.stdout, out.stderr
+    assert json.loads(out.stdout.strip().splitlines()[-1])[name]["per_run"][0]["information_at"] is None
+    bad_flags = (([str(tmp_path / "nothing")], "run="), ([str(run), "--marks", "0"], "--marks"),
+                 ([str(run), "--window", "-1"], "window"))  # fmt: skip
+    for bad, named in bad_flags:
         refused = subprocess.run([sys.executable, "benchmarks/run_marks.py", *bad], cwd=ROOT, capture_output=True,
                                  text=True, timeout=60)  # fmt: skip
         assert refused.returncode == 2 and "Traceback" not in refused.stderr
