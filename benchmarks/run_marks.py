@@ -65,8 +65,13 @@ def information_at_marks(folder: Path, marks: tuple[int, ...], window: int) -> d
     if not all(f"charts/{c}" in header for c in INFORMATION):
         return None
     episodes, _, marginal, per_message = read_columns(folder, INFORMATION)
-    near = {m: np.abs(episodes - m) <= window if m <= episodes[-1] else np.zeros_like(episodes, bool) for m in marks}
-    return {m: float((marginal - per_message)[rows].mean()) if rows.any() else None for m, rows in near.items()}
+    information = marginal - per_message
+
+    def at(mark: int) -> float | None:
+        near = np.abs(episodes - mark) <= window
+        return float(information[near].mean()) if mark <= episodes[-1] and near.any() else None
+
+    return {m: at(m) for m in marks}
 
 
 def run_marks(folder: Path, oracle: float | None, marks: tuple[int, ...], window: int = WINDOW) -> dict[str, Any]:
