@@ -22,7 +22,7 @@ sends being 1; a bit near 0.5 is a code the sender hedges between two words, whi
         [--stalls N] [--words]
 
 `--words` first counts the goals whose most likely word (the observed head's) another goal shares, and the
-neighbouring pairs among them.
+neighbouring pairs and the pairs at most 3 cells apart among them.
 """
 
 from __future__ import annotations
@@ -191,11 +191,16 @@ def print_census(census: Counter[tuple], max_period: int, detail: bool) -> None:
         print(f"| {where} | {'yes' if changes else 'no'} | {moving if period else '-'} | {cells} | {count} |")
 
 
-def shared_words(controller: Any) -> tuple[int, int, int]:
+NEARBY = 3
+"""How far apart (Manhattan, in cells) two goals on one word count as nearby (`message_divergence_radius`'s default)."""
+
+
+def shared_words(controller: Any) -> tuple[int, int, int, int]:
     """The most likely word a sender sends for each goal it can observe, with a message head that reads only that
     goal (`message_reads` `observed`, the default): (distinct words, goals that share their word with another,
-    pairs of neighbouring goals that share one). Two neighbours on one word cost sampled play little (the word's
-    bits still vary) and can stall greedy play (docs/tuning.md, session 37)."""
+    pairs of neighbouring goals that share one, pairs at most `NEARBY` cells apart that share one). Two nearby goals
+    on one word cost sampled play little (the word's bits still vary) and can stall greedy play (docs/tuning.md,
+    sessions 37 and 43)."""
     from bitcomm.channel.core import bits_to_index
     from bitcomm.errors import ConfigError
 
@@ -212,10 +217,16 @@ def shared_words(controller: Any) -> tuple[int, int, int]:
     planes[np.arange(cells), 1, np.arange(cells) // S, np.arange(cells) % S] = 1
     _, bits = controller.act(planes, np.zeros((cells, task.slots, K), np.uint8), greedy=True)
     word = bits_to_index(bits)
-    grid = word.reshape(S, S)
-    pairs = int((grid[:, 1:] == grid[:, :-1]).sum() + (grid[1:] == grid[:-1]).sum())
+    row, col = np.arange(cells) // S, np.arange(cells) % S
+    apart = np.abs(row[:, None] - row[None]) + np.abs(col[:, None] - col[None])
+    shared = np.triu(word[:, None] == word[None], 1)  # each pair of goals once
     _, index, counts = np.unique(word, return_inverse=True, return_counts=True)
-    return len(counts), int((counts[index] > 1).sum()), pairs
+    return (
+        len(counts),
+        int((counts[index] > 1).sum()),
+        int((shared & (apart == 1)).sum()),
+        int((shared & (apart <= NEARBY)).sum()),
+    )
 
 
 def main() -> None:
@@ -248,12 +259,13 @@ def main() -> None:
         ap.error(str(err))
     if a.words:
         try:
-            distinct, sharing, pairs = shared_words(controller)
+            distinct, sharing, pairs, nearby = shared_words(controller)
         except ConfigError as err:
             ap.error(str(err))
         cells = controller.task.env.size**2
         print(
-            f"most likely words: {distinct} for {cells} goals; {sharing} goals share theirs; {pairs} neighbouring pairs"
+            f"most likely words: {distinct} for {cells} goals; {sharing} goals share theirs; "
+            f"{pairs} neighbouring pairs, {nearby} pairs at most {NEARBY} cells apart"
         )
     if not a.census_only:
         print_split(a.run, a.episodes, a.seed)

@@ -83,6 +83,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
             "entropy-move",
             "entropy-message",
             "entropy-message-marginal",
+            "message-divergence",
             "sharpen-messages",
             "sharpen-moves",
             "uniform-move",

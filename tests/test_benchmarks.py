@@ -193,9 +193,9 @@ def _benchmark(name: str) -> Any:
     return module
 
 
-def test_shared_words_counts_the_goals_on_one_word_and_the_neighbours_among_them() -> None:
+def test_shared_words_counts_the_goals_on_one_word_and_the_nearby_pairs_among_them() -> None:
     """A 3x3 grid, 4 bits: the sender's word is the goal's cell index, except that cells 0 and 1 (neighbours) and
-    4 and 8 (not neighbours) share a word: 7 words, 4 goals sharing, 1 neighbouring pair."""
+    4 and 8 (two cells apart) share a word: 7 words, 4 goals sharing, 1 neighbouring pair, 2 pairs within 3 cells."""
     from types import SimpleNamespace
 
     import numpy as np
@@ -214,7 +214,7 @@ def test_shared_words_counts_the_goals_on_one_word_and_the_neighbours_among_them
         return np.zeros(9, np.int64), ((words[:, None] >> np.arange(4)) & 1).astype(np.uint8)
 
     controller = SimpleNamespace(task=task, act=act, config={"model": {"message_reads": "observed"}})
-    assert shared_words(controller) == (7, 4, 1)
+    assert shared_words(controller) == (7, 4, 1, 2)
     with pytest.raises(ConfigError, match="--message-reads observed"):
         shared_words(SimpleNamespace(task=task, act=act, config={"model": {"message_reads": "all"}}))
 

@@ -157,13 +157,15 @@ def test_pure_recipes_give_the_policy_no_gradient_but_the_estimators(recipe: str
     assert make_train_config(recipe).pure
 
 
-def test_the_marginal_message_entropy_reaches_the_message_head_alone() -> None:
-    """An entropy term of the message distribution: without advantages it moves the message head and leaves the
-    movement head still, as the per-message entropy bonus does; the recipe stays pure."""
-    grads = policy_gradients_after_one_step("reinforced", zero_advantages=True, entropy_message_marginal=0.1)
+@pytest.mark.parametrize(("option", "weight"), [("entropy_message_marginal", 0.1), ("message_divergence", 1.0)])
+def test_the_bonuses_on_the_senders_code_reach_the_message_head_alone(option: str, weight: float) -> None:
+    """The marginal message entropy and the nearby goals' divergence are information terms of the senders' own
+    message distributions: without advantages they move the message head and leave the movement head still, as
+    the per-message entropy bonus does; the recipe stays pure."""
+    grads = policy_gradients_after_one_step("reinforced", zero_advantages=True, **{option: weight})
     assert grads["message_logits.weight"].abs().sum() > 0
     assert torch.count_nonzero(grads["move_logits.weight"]) == 0
-    assert make_train_config("reinforced", entropy_message_marginal=0.1).pure
+    assert make_train_config("reinforced", **{option: weight}).pure
 
 
 @pytest.mark.parametrize(

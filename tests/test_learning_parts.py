@@ -670,6 +670,74 @@ def test_the_mean_message_probabilities_are_each_message_s_by_index_with_their_g
     assert torch.allclose(got, expected)
 
 
+@pytest.mark.parametrize("name", ["bitwise", "onehot"])
+@pytest.mark.parametrize("bits", [1, 3, 4])
+def test_the_pair_divergence_is_the_jensen_shannon_divergence_of_the_two_rows(name, bits):
+    """`pair_divergence` against brute force over every message: H((p + q) / 2) - (H(p) + H(q)) / 2 of each pair's
+    rows, with the same gradient; log 2 for two rows sure of two messages, 0 for one row with itself."""
+    from bitcomm.policies.heads import pair_divergence
+
+    head = make_head(name, bits)
+    gen = torch.Generator().manual_seed(bits)
+    logits = (2 * torch.randn(5, head.out_features, generator=gen, dtype=torch.float64)).requires_grad_()
+    first, second = torch.tensor([0, 0, 1, 3, 2]), torch.tensor([1, 4, 3, 2, 2])
+    every = torch.arange(1 << bits)
+    all_bits = torch.stack([(every >> (bits - 1 - k)) & 1 for k in range(bits)], -1).to(torch.uint8)
+    p = torch.stack([head.log_prob(logits, all_bits[m].expand(5, bits)) for m in every], -1).exp()
+
+    def entropy(q: torch.Tensor) -> torch.Tensor:
+        return -(q * q.log()).sum(-1)
+
+    brute = entropy((p[first] + p[second]) / 2) - (entropy(p[first]) + entropy(p[second])) / 2
+    got = pair_divergence(head, logits, first, second)
+    assert torch.allclose(got, brute)
+    assert got[-1].item() == pytest.approx(0.0, abs=1e-12)
+    weights = torch.randn(5, generator=gen, dtype=torch.float64)
+    (expected,) = torch.autograd.grad((brute * weights).sum(), logits)
+    (grad,) = torch.autograd.grad((got * weights).sum(), logits)
+    assert torch.allclose(grad, expected)
+    sure = {"bitwise": 30.0 * (2.0 * all_bits[[0, -1]].double() - 1), "onehot": 60.0 * torch.eye(1 << bits)[[0, -1]]}
+    apart = pair_divergence(head, sure[name].double(), torch.tensor([0]), torch.tensor([1]))
+    assert apart.item() == pytest.approx(np.log(2), abs=1e-6)
+
+
+def test_nearby_goals_are_every_pair_of_cells_within_the_radius_once():
+    """On 3x3, 12 pairs of neighbours (radius 1), and with radius 2 also the 6 pairs two steps apart in a line and
+    the 8 diagonal ones; each observation holds one goal, on the observed plane, at its cell."""
+    from bitcomm.learn.objectives import nearby_goals
+    from bitcomm.policies.networks import OBSERVED_PLANE
+
+    planes, first, second = nearby_goals(3, 1)
+    pairs = sorted(zip(first.tolist(), second.tolist(), strict=True))
+    assert len(pairs) == 12 and (0, 1) in pairs and (0, 3) in pairs and (0, 4) not in pairs
+    assert all(a < b for a, b in pairs)
+    assert planes.shape == (9, 2, 3, 3) and planes.sum().item() == 9
+    assert planes[5, OBSERVED_PLANE, 1, 2].item() == 1
+    _, first, second = nearby_goals(3, 2)
+    distance = (first // 3 - second // 3).abs() + (first % 3 - second % 3).abs()
+    assert len(first) == 26 and distance.max().item() == 2
+
+
+def test_the_nearby_divergence_is_logged_and_needs_a_head_that_reads_the_goal_alone():
+    """Its weight must be a number >= 0; it acts only where each goal has a word distribution of its own, on at most
+    2^12 messages, and its radius only with it: each a one-line error naming the value."""
+    cfg = make_train_config("reinforced", TINY, num_envs=4, message_divergence=0.5, message_divergence_radius=2)
+    learner = Learner(cfg)
+    term = next(t for t in learner.terms if t.name == "message_divergence")
+    assert (term.weight, term.radius) == (0.5, 2)
+    with pytest.raises(ConfigError, match="message-divergence=0.5: acts only with --message-reads observed"):
+        make_train_config("reinforced", TINY, message_divergence=0.5, message_reads="all")
+    with pytest.raises(ConfigError, match="message-divergence-radius=2: acts only with --message-divergence > 0"):
+        make_train_config("reinforced", TINY, message_divergence=0.0, message_divergence_radius=2)
+    with pytest.raises(ConfigError, match="message-divergence-radius=0: must be an integer >= 1"):
+        make_train_config("reinforced", TINY, message_divergence=0.5, message_divergence_radius=0)
+    with pytest.raises(ConfigError, match="message-divergence=-1"):
+        make_train_config("reinforced", TINY, message_divergence=-1.0)
+    wide = TaskConfig(EnvConfig(size=4, max_steps=20), ChannelConfig(bits=13))
+    with pytest.raises(ConfigError, match="message-divergence=0.5: .* K <= 12 bits \\(K = 13\\)"):
+        make_train_config("reinforced", wide, message_divergence=0.5)
+
+
 def test_the_marginal_entropy_bonus_needs_at_most_4096_messages():
     """Above 12 bits the default recipe trains with the per-message bonus instead; asked for, it is one line."""
     wide = TaskConfig(EnvConfig(size=4, max_steps=20), ChannelConfig(bits=13))

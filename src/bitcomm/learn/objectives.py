@@ -14,6 +14,8 @@ Reinforcement (SPEC section 7; every gradient reaching a policy head comes from 
     Entropy message  -n w mean H(Pm)
     Marginal message -n w H(mean Pm): the entropy of the minibatch's average message distribution, a bonus
                      for states that use different messages (`entropy_message_marginal`, off by default)
+    Nearby divergence -n w mean_{g, g'} JS(Pm(. | g), Pm(. | g')) over pairs of goal cells at most r apart: a
+                     bonus for telling nearby goals apart (`message_divergence`; a head that reads only the goal)
     UniformMove      -n w mean_a log pi(a) = n w (KL(U || pi) + log 5): an entropy-type pull toward
                      uniform moves that, unlike H, grows without bound as a move's probability falls
 
@@ -45,8 +47,12 @@ from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.estimators import Advantages, policy_gradient_loss
 from bitcomm.learn.rollout import Rollout
-from bitcomm.policies.heads import marginal_entropy, probabilities, row_weights
-from bitcomm.policies.networks import PolicyNet
+from bitcomm.policies.heads import marginal_entropy, pair_divergence, probabilities, row_weights
+from bitcomm.policies.networks import OBSERVED_PLANE, PolicyNet
+
+NEARBY_PAIRS_PER_STEP = 1024
+"""At most this many pairs of nearby goals enter one step's `NearbyMessageDivergence` (a uniform draw of them
+where the grid has more): each pair costs a row of all 2^K message probabilities."""
 
 
 class Routes(NamedTuple):
@@ -247,6 +253,40 @@ class MarginalMessageEntropy:
         return -(b.n * self.weight) * h, {f"charts/{self.name}": h.item()}
 
 
+@functools.cache
+def nearby_goals(size: int, radius: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """An observation of each goal cell `(S^2, 2, S, S)` (its observed plane; a head that reads only that plane
+    reads nothing else), and every pair of goal cells at most `radius` apart (Manhattan), each once: `(P,)`, `(P,)`."""
+    cells = torch.arange(size * size)
+    row, col = cells // size, cells % size
+    planes = torch.zeros(size * size, 2, size, size)
+    planes[cells, OBSERVED_PLANE, row, col] = 1.0
+    apart = (row[:, None] - row[None]).abs() + (col[:, None] - col[None]).abs()
+    first, second = torch.nonzero((apart <= radius) & (cells[:, None] < cells[None]), as_tuple=True)
+    return planes, first, second
+
+
+@dataclass(frozen=True)
+class NearbyMessageDivergence:
+    """-n w mean JS(Pm(. | g), Pm(. | g')) over pairs of goal cells g, g' at most `radius` apart, of a message head
+    that reads only the goal its sender observes (`TrainConfig.message_divergence`); logged as
+    `charts/message_divergence`."""
+
+    weight: float
+    radius: int
+    name: str = "message_divergence"
+    auxiliary: bool = False
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        planes, first, second = nearby_goals(b.routes.size, self.radius)
+        if first.shape[0] > NEARBY_PAIRS_PER_STEP:
+            drawn = torch.randperm(first.shape[0])[:NEARBY_PAIRS_PER_STEP]
+            first, second = first[drawn], second[drawn]
+        logits = b.policy.observed_message_logits(planes)
+        js = pair_divergence(b.policy.head, logits, first, second).mean()
+        return -(b.n * self.weight) * js, {f"charts/{self.name}": js.item()}
+
+
 @dataclass(frozen=True)
 class UniformMove:
     """-n w mean_a log pi(a) = n w (KL(U || pi) + log 5), U uniform over the 5 moves."""
@@ -375,6 +415,8 @@ def policy_terms(
     ]
     if cfg.entropy_message_marginal > 0:
         terms.append(MarginalMessageEntropy(cfg.entropy_message_marginal * message_scale))
+    if cfg.message_divergence > 0:
+        terms.append(NearbyMessageDivergence(cfg.message_divergence * message_scale, cfg.message_divergence_radius))
     if cfg.uniform_move > 0:
         terms.append(UniformMove(cfg.uniform_move * move_scale))
     if cfg.goal_coef > 0:

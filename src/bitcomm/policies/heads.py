@@ -44,6 +44,18 @@ def marginal_entropy(head: Any, logits: torch.Tensor, weights: torch.Tensor | No
     return -(p * p.clamp(min=1e-30).log()).sum()
 
 
+def pair_divergence(head: Any, logits: torch.Tensor, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+    """`(P,)` Jensen-Shannon divergence between the message distributions of rows `first (P,)` and `second (P,)` of
+    `logits (N, out)`: H(mixture of the two) - their mean entropy, exact over all 2^K messages (K <=
+    MAX_MARGINAL_BITS), differentiable. log 2 when the two put their mass on different messages, 0 when they are the
+    same distribution; unlike each entropy it does not ask either to be sharper once they are apart."""
+    p = probabilities(head.log_prob_of_terms(head.log_prob_terms(logits)))  # (N, 2^K)
+    mixture = (p[first] + p[second]) / 2
+    mixture_entropy = -(mixture * mixture.clamp(min=1e-30).log()).sum(-1)
+    h = head.entropy(logits)
+    return mixture_entropy - (h[first] + h[second]) / 2
+
+
 def row_weights(rows: torch.Tensor, count: int) -> torch.Tensor:
     """`(N,)` indices into `count` distinct rows -> `(count,)` each distinct row's share of the N."""
     return torch.bincount(rows, minlength=count).float() / rows.shape[0]
@@ -75,11 +87,12 @@ class _MeanProbability(torch.autograd.Function):
         return p * grad * weights.to(p.dtype)[:, None], None
 
 
-def check_marginal_bits(weight: float, bits: int) -> None:
-    """One error line for a marginal entropy bonus (`entropy_message_marginal`) on more than 2^12 messages."""
+def check_marginal_bits(weight: float, bits: int, flag: str = "entropy-message-marginal") -> None:
+    """One error line for a bonus that sums over all 2^K messages (`entropy_message_marginal`,
+    `message_divergence`) on more than 2^12 of them."""
     if weight > 0 and bits > MAX_MARGINAL_BITS:
         raise bad_value(
-            "entropy-message-marginal",
+            flag,
             weight,
             f"sums over all 2^K messages, so it needs K <= {MAX_MARGINAL_BITS} bits (K = {bits}); leave it at 0",
         )
