@@ -162,8 +162,8 @@ class TrainConfig:
     most likely word cost sampled play a step or two, which the policy gradient barely sees, and stall greedy play
     (docs/tuning.md sessions 37 and 43); the marginal bonus counts a shared word the same wherever the goals lie. An
     information term of the senders' own distributions, no target word, so a run stays pure. At 1 (radius 3) on the
-    paper's task greedy play ended within 1.05x of the oracle on 14 of 16 seeds (the default: 10 of 16), with two
-    misses of 1.31-1.38x on hedged bits, at about 0.82x the throughput: off until confirmed (session 43)."""
+    paper's task greedy play ended within 1.05x of the oracle on 19 of 24 seeds (the default: 10 of 16), with misses
+    of 1.31-1.51x on hedged bits, at about 0.82x the throughput: off (docs/tuning.md session 43)."""
     message_divergence_radius: int = 3
     """How far apart (Manhattan, in cells) two goals may be for `message_divergence` to count their pair; where a grid
     has more than 1,024 such pairs, a uniform draw of 1,024 of them enters each step."""
