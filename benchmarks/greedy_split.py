@@ -203,6 +203,7 @@ def shared_words(controller: Any) -> tuple[int, int, int, int]:
     sessions 37 and 43)."""
     from bitcomm.channel.core import bits_to_index
     from bitcomm.errors import ConfigError
+    from bitcomm.learn.objectives import nearby_goals
 
     model = controller.config.get("model", {})
     if model.get("message_reads") != "observed":
@@ -212,21 +213,15 @@ def shared_words(controller: Any) -> tuple[int, int, int, int]:
         )
     task = controller.task
     S, K, cells = task.env.size, task.channel.bits, task.env.size**2
-    planes = np.zeros((cells, 2, S, S), np.uint8)
+    goal_planes, first, second = nearby_goals(S, NEARBY)  # the pairs `message_divergence` counts at that radius
+    planes = goal_planes.numpy().astype(np.uint8)
     planes[:, 0, 0, 0] = 1  # where the sender stands: the head does not read it
-    planes[np.arange(cells), 1, np.arange(cells) // S, np.arange(cells) % S] = 1
     _, bits = controller.act(planes, np.zeros((cells, task.slots, K), np.uint8), greedy=True)
     word = bits_to_index(bits)
-    row, col = np.arange(cells) // S, np.arange(cells) % S
-    apart = np.abs(row[:, None] - row[None]) + np.abs(col[:, None] - col[None])
-    shared = np.triu(word[:, None] == word[None], 1)  # each pair of goals once
     _, index, counts = np.unique(word, return_inverse=True, return_counts=True)
-    return (
-        len(counts),
-        int((counts[index] > 1).sum()),
-        int((shared & (apart == 1)).sum()),
-        int((shared & (apart <= NEARBY)).sum()),
-    )
+    shared = word[first.numpy()] == word[second.numpy()]
+    apart = (first // S - second // S).abs() + (first % S - second % S).abs()
+    return len(counts), int((counts[index] > 1).sum()), int(shared[apart.numpy() == 1].sum()), int(shared.sum())
 
 
 def main() -> None:

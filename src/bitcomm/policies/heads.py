@@ -40,8 +40,12 @@ def marginal_entropy(head: Any, logits: torch.Tensor, weights: torch.Tensor | No
     exact over all 2^K messages (K <= MAX_MARGINAL_BITS), differentiable. It is largest when different
     senders' states put their mass on different messages; a message two states share lowers it. `weights (N,)`,
     summing to 1: a weighted average (each distinct row weighted by its share of the steps)."""
-    p = head.mean_probabilities(logits, weights)
-    return -(p * p.clamp(min=1e-30).log()).sum()
+    return entropy_of(head.mean_probabilities(logits, weights))
+
+
+def entropy_of(p: torch.Tensor) -> torch.Tensor:
+    """The entropy of each distribution `p (..., C)` over its last axis, a probability of 0 counting 0."""
+    return -(p * p.clamp(min=1e-30).log()).sum(-1)
 
 
 def pair_divergence(head: Any, logits: torch.Tensor, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
@@ -50,10 +54,8 @@ def pair_divergence(head: Any, logits: torch.Tensor, first: torch.Tensor, second
     MAX_MARGINAL_BITS), differentiable. log 2 when the two put their mass on different messages, 0 when they are the
     same distribution; unlike each entropy it does not ask either to be sharper once they are apart."""
     p = probabilities(head.log_prob_of_terms(head.log_prob_terms(logits)))  # (N, 2^K)
-    mixture = (p[first] + p[second]) / 2
-    mixture_entropy = -(mixture * mixture.clamp(min=1e-30).log()).sum(-1)
     h = head.entropy(logits)
-    return mixture_entropy - (h[first] + h[second]) / 2
+    return entropy_of((p[first] + p[second]) / 2) - (h[first] + h[second]) / 2
 
 
 def row_weights(rows: torch.Tensor, count: int) -> torch.Tensor:
