@@ -30,9 +30,12 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
 
 
 class MixedPlay:
@@ -195,13 +198,15 @@ NEARBY = 3
 """How far apart (Manhattan, in cells) two goals on one word count as nearby (`message_divergence_radius`'s default)."""
 
 
-def shared_words(controller: Any) -> tuple[int, int, int, int]:
-    """The most likely word a sender sends for each goal it can observe, with a message head that reads only that
-    goal (`message_reads` `observed`, the default): (distinct words, goals that share their word with another,
-    pairs of neighbouring goals that share one, pairs at most `NEARBY` cells apart that share one). Two nearby goals
-    on one word cost sampled play little (the word's bits still vary) and can stall greedy play (docs/tuning.md,
-    sessions 37 and 43)."""
-    from bitcomm.channel.core import bits_to_index
+HEDGED = 0.2
+"""A bit sent with a probability between HEDGED and 1 - HEDGED is hedged: sampled play sends both values, greedy play
+always the one it rounds to, which may be another goal's word (docs/tuning.md sessions 43-44)."""
+
+
+def goal_observations(controller: Any) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
+    """`(S*S, 2, S, S)` planes that show each goal cell once, and the pairs of goal cells at most `NEARBY` apart, for a
+    message head that reads only the observed goal (`message_reads` `observed`, the default); one error line for a
+    run whose head reads more, so that a goal has no word of its own."""
     from bitcomm.errors import ConfigError
     from bitcomm.learn.objectives import nearby_goals
 
@@ -211,17 +216,46 @@ def shared_words(controller: Any) -> tuple[int, int, int, int]:
             f"invalid run: its message head reads {model.get('message_reads')!r}, not only the observed goal, so a "
             "goal has no word of its own; --words needs --message-reads observed"
         )
-    task = controller.task
-    S, K, cells = task.env.size, task.channel.bits, task.env.size**2
-    goal_planes, first, second = nearby_goals(S, NEARBY)  # the pairs `message_divergence` counts at that radius
+    goal_planes, first, second = nearby_goals(controller.task.env.size, NEARBY)  # `message_divergence`'s pairs
     planes = goal_planes.numpy().astype(np.uint8)
     planes[:, 0, 0, 0] = 1  # where the sender stands: the head does not read it
+    return planes, first, second
+
+
+def shared_words(controller: Any) -> tuple[int, int, int, int]:
+    """The most likely word a sender sends for each goal it can observe: (distinct words, goals that share their word
+    with another, pairs of neighbouring goals that share one, pairs at most `NEARBY` cells apart that share one). Two
+    nearby goals on one word cost sampled play little (the word's bits still vary) and can stall greedy play
+    (docs/tuning.md, sessions 37 and 43)."""
+    from bitcomm.channel.core import bits_to_index
+
+    planes, first, second = goal_observations(controller)
+    task = controller.task
+    S, K, cells = task.env.size, task.channel.bits, task.env.size**2
     _, bits = controller.act(planes, np.zeros((cells, task.slots, K), np.uint8), greedy=True)
     word = bits_to_index(bits)
     _, index, counts = np.unique(word, return_inverse=True, return_counts=True)
     shared = word[first.numpy()] == word[second.numpy()]
     apart = (first // S - second // S).abs() + (first % S - second % S).abs()
     return len(counts), int((counts[index] > 1).sum()), int(shared[apart.numpy() == 1].sum()), int(shared.sum())
+
+
+def hedged_bits(controller: Any) -> tuple[int, int]:
+    """(bits, goals): how many of the K bits of every goal's word the senders send with a probability between
+    `HEDGED` and 1 - `HEDGED`, and how many goals have one. Each bit's probability is its marginal under the message
+    head (for a one-hot head, the sum over the words that set it)."""
+    import torch
+
+    from bitcomm.channel.core import index_to_bits
+
+    planes, _, _ = goal_observations(controller)
+    policy, K = controller.policy, controller.task.channel.bits
+    with torch.no_grad():
+        logits = policy.observed_message_logits(torch.from_numpy(planes))
+        words = policy.head.log_prob_of_terms(policy.head.log_prob_terms(logits)).exp()  # (S*S, 2^K)
+        p = words @ index_to_bits(torch.arange(1 << K), K).to(words.dtype)  # (S*S, K) P(bit = 1)
+    hedged = (p >= HEDGED) & (p <= 1 - HEDGED)
+    return int(hedged.sum()), int(hedged.any(1).sum())
 
 
 def main() -> None:
@@ -258,10 +292,12 @@ def main() -> None:
         except ConfigError as err:
             ap.error(str(err))
         cells = controller.task.env.size**2
+        hedged, hedging = hedged_bits(controller)
         print(
             f"most likely words: {distinct} for {cells} goals; {sharing} goals share theirs; "
             f"{pairs} neighbouring pairs, {nearby} pairs at most {NEARBY} cells apart"
         )
+        print(f"hedged bits (sent with probability {HEDGED}-{1 - HEDGED:g}): {hedged}, on {hedging} of {cells} goals")
     if not a.census_only:
         print_split(a.run, a.episodes, a.seed)
     greedy, stalls = watching_stalls(BatchedPolicy(ControllerAgent(controller, greedy=True)), controller.task, a.stalls)

@@ -72,6 +72,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
     (ALL, "--move-decay-below"): {"0", "1e300"},  # 0: the decay from the first episode; huge: from the second batch
     (ALL, "--greedy-senders"): {"0"},  # 0: off
     (ALL, "--greedy-senders-from"): {"0"},  # 0: from the first batch (the default recipe's greedy senders)
+    (ALL, "--held-messages"): {"0"},  # 0: off
     (ALL, "--staleness"): {"0"},  # 0: synchronous  # 0 or beyond max_steps: the task's own limit
     (ALL, "--keep-checkpoints"): {"1000000000000"},  # keep them all
     (ALL, "--held-out-every"): {"0", "1000000000000"},  # 0: never; huge: once, at the end

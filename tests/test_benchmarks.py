@@ -219,6 +219,37 @@ def test_shared_words_counts_the_goals_on_one_word_and_the_nearby_pairs_among_th
         shared_words(SimpleNamespace(task=task, act=act, config={"model": {"message_reads": "all"}}))
 
 
+@pytest.mark.parametrize("head", ["bitwise", "onehot"])
+def test_hedged_bits_are_the_bits_a_goal_s_word_sends_with_probability_between_the_bounds(head: str) -> None:
+    """A 3x3 grid, 2 bits: goal 4's first bit is sent with probability 0.5, goal 7's second with 0.3 and goal 2's
+    first with 0.79, goal 8's second with 0.19 (not hedged), every other bit with 0.01 or 0.99. Both heads give each
+    bit's marginal."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.policies.heads import make_head
+
+    task = TaskConfig(EnvConfig(size=3), ChannelConfig(bits=2))
+    p = torch.full((9, 2), 0.99)
+    p[:, 1] = 0.01
+    p[4, 0], p[7, 1], p[2, 0], p[8, 1] = 0.5, 0.3, 0.79, 0.19
+
+    def observed_message_logits(planes: torch.Tensor) -> torch.Tensor:
+        q = p[planes[:, 1].flatten(1).float().argmax(1)]
+        if head == "bitwise":
+            return torch.logit(q)
+        words = torch.stack(
+            [(1 - q[:, 0]) * (1 - q[:, 1]), q[:, 0] * (1 - q[:, 1]), (1 - q[:, 0]) * q[:, 1], q.prod(1)], 1
+        )
+        return words.log()  # word index i sets bit k where (i >> k) & 1
+
+    policy = SimpleNamespace(observed_message_logits=observed_message_logits, head=make_head(head, 2))
+    controller = SimpleNamespace(task=task, policy=policy, config={"model": {"message_reads": "observed"}})
+    assert _benchmark("greedy_split").hedged_bits(controller) == (3, 3)
+
+
 def test_the_cycle_census_names_the_period_of_each_episode_that_never_ends() -> None:
     from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 

@@ -19,6 +19,7 @@ from torch import nn
 from bitcomm.channel.core import bits_to_index
 from bitcomm.checkpoint import load_weights
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError
 from bitcomm.learn.config import ENTROPY_WEIGHTS, make_train_config
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
 from bitcomm.learn.learner import Learner
@@ -248,6 +249,57 @@ def test_greedy_senders_keep_their_fraction_of_the_run_where_a_batch_cannot_hold
     odd = make_train_config("reinforced", TWO, num_envs=5, episodes=1000, greedy_senders=0.3, greedy_senders_from=0.0)
     played = [odd.greedy_sender_episodes(e) for e in range(0, 1000, 5)]
     assert set(played) == {1, 2} and sum(played) == 300
+
+
+def test_held_messages_send_the_word_drawn_at_the_first_step_and_are_credited_like_any_sample() -> None:
+    """`held_messages`: in the columns after the greedy senders' ones each sender draws a word at the episode's first
+    step and sends it at every step; the recorded log-probability is the held word's under the head (so an update's
+    first ratio is 1), and the estimator credits those messages as it credits sampled ones."""
+    torch.manual_seed(0)
+    cfg = make_train_config("reinforced", TWO, num_envs=8, **dict.fromkeys(ENTROPY_WEIGHTS, 0.0))
+    learner = Learner(cfg)
+    ro = Collector(TWO, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0), 2, 3)
+    assert ro.sent_greedy.tolist() == [True] * 2 + [False] * 6
+    with torch.no_grad():
+        logits = learner.policy.observed_message_logits(ro.planes[0].flatten(0, 1)).view(8, -1, BITS)
+    head = learner.policy.head
+    for b in range(8):
+        sent = ro.bits[ro.valid[:, b], b]  # (steps, n, K)
+        assert bool((sent == sent[0]).all()) == (b < 5), b  # greedy and held columns send one word; sampled do not
+        logp = head.log_prob(logits[b].expand(len(sent), -1, -1), sent)
+        assert torch.allclose(ro.logp_message[ro.valid[:, b], b], logp)
+    held_words = ro.bits[0, 2:5]
+    assert not torch.equal(held_words, head.mode(logits[2:5]))  # draws, not the most likely words
+    adv, plain = learner.advantages(ro), learner.advantages(ro._replace(sent_greedy=torch.zeros(8, dtype=torch.bool)))
+    assert torch.equal(adv.message[:, 2:], plain.message[:, 2:]) and adv.message[:, 2:5].abs().sum() > 0
+    assert make_train_config("reinforced", held_messages=0.25).pure
+
+
+def test_held_words_are_draws_of_the_message_policy() -> None:
+    """Over many episodes of one goal, the held words' bits are 1 as often as the head says."""
+    torch.manual_seed(1)
+    learner = Learner(make_train_config("reinforced", TWO, num_envs=4000))
+    ro = Collector(TWO, 4000).collect(
+        learner.policy, np.random.SeedSequence(2), torch.Generator().manual_seed(2), 0, 4000
+    )
+    with torch.no_grad():
+        p = torch.sigmoid(learner.policy.observed_message_logits(ro.planes[0].flatten(0, 1)))
+    first = ro.bits[0].flatten(0, 1).float()  # (4000 * n, K)
+    assert torch.allclose(first.mean(0), p.mean(0), atol=0.03)
+
+
+def test_held_messages_follow_their_schedule_and_need_a_head_that_reads_the_goal_alone() -> None:
+    cfg = make_train_config("reinforced", TWO, num_envs=8, episodes=1000, held_messages=0.25, held_messages_from=0.2)
+    assert [cfg.held_message_episodes(e) for e in (0, 199, 200, 1000)] == [0, 0, 2, 2]
+    assert make_train_config("reinforced", TWO).held_message_episodes(10**9) == 0  # off in the recipe
+    for bad, flag in [
+        (dict(held_messages=0.5, message_reads="all"), "held-messages"),
+        (dict(held_messages=1.5), "held-messages"),
+        (dict(held_messages_from=0.2), "held-messages-from"),
+        (dict(held_messages=0.25, held_messages_from=-1.0), "held-messages-from"),
+    ]:
+        with pytest.raises(ConfigError, match=f"invalid {flag}="):
+            make_train_config("reinforced", TWO, **bad)
 
 
 @pytest.mark.parametrize("mode", ["sync", "a3c"])

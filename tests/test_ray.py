@@ -137,16 +137,30 @@ def test_async_keeps_its_staleness_bound_and_runs_move_between_local_and_ray(clu
     assert [int(x["episodes"]) for x in rows(out)][-3:] == [192, 208, 224]
 
 
-def test_a_rollout_actor_plays_the_greedy_senders_of_its_batch_s_place_in_the_schedule() -> None:
+def test_a_rollout_actor_plays_the_greedy_senders_and_held_messages_of_its_batch_s_place_in_the_schedule() -> None:
     """Batch k of a run follows k full batches (`k * num_envs` episodes), so an actor knows from k alone how many
-    of its episodes send the most likely message (`greedy_senders`), as the local trainer does."""
+    of its episodes send the most likely message (`greedy_senders`) or one drawn word (`held_messages`), as the local
+    trainer does."""
     from bitcomm.learn.ray_backend import RolloutWorker
 
-    cfg = tiny_config(episodes=1000, num_envs=8, greedy_senders=0.25, greedy_senders_from=0.5)
+    cfg = tiny_config(
+        episodes=1000,
+        num_envs=8,
+        greedy_senders=0.25,
+        greedy_senders_from=0.5,
+        held_messages=0.25,
+        held_messages_from=0.5,
+    )
     worker = RolloutWorker(cfg.to_dict())
     weights = {k: v.numpy() for k, v in worker.policy.state_dict().items()}
-    before, after = (worker.collect(weights, 0, batch)["rollout"]["sent_greedy"] for batch in (62, 63))
-    assert before.tolist() == [False] * 8 and after.tolist() == [True] * 2 + [False] * 6
+    before, after = (
+        {k: v.copy() for k, v in worker.collect(weights, 0, batch)["rollout"].items()} for batch in (62, 63)
+    )
+    assert before["sent_greedy"].tolist() == [False] * 8 and after["sent_greedy"].tolist() == [True] * 2 + [False] * 6
+    one_word = [
+        bool((ro["bits"][ro["valid"][:, b], b] == ro["bits"][0, b]).all()) for ro in (before, after) for b in range(8)
+    ]
+    assert one_word == [False] * 8 + [True] * 4 + [False] * 4  # then the held messages' columns (`held_messages`)
 
 
 def test_joined_batches_keep_each_episode_and_pad_time_with_invalid_steps() -> None:

@@ -154,7 +154,8 @@ def _worker(
             pull(local, remote)
             with flush_denormals():
                 seed = np.random.SeedSequence(cfg.seed, spawn_key=(k,))
-                ro = collector.collect(learner.policy, seed, generator, cfg.greedy_sender_episodes(claimed_before))
+                greedy, held = cfg.greedy_sender_episodes(claimed_before), cfg.held_message_episodes(claimed_before)
+                ro = collector.collect(learner.policy, seed, generator, greedy, held)
                 stats = learner.update(ro, generator, progress=cfg.schedule_progress(claimed_before))
             sent_greedy = ro.sent_greedy.numpy().copy()
             results.put(("batch", w, ro.length.copy(), ro.team_return.copy(), ro.success.copy(), sent_greedy, stats))

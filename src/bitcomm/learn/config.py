@@ -154,6 +154,17 @@ class TrainConfig:
     the `reinforced` recipe since session 35."""
     greedy_senders_from: float = 0.5
     """The schedule's progress (0 to 1) from which `greedy_senders` plays its episodes."""
+    held_messages: float = 0.0
+    """Fraction of each batch's episodes in which each sender draws its message once, at the episode's first step,
+    and sends that word at every step (moves sampled), from `held_messages_from` of the schedule on (off: 0). Unlike
+    `greedy_senders`' words these are samples of the message policy, and the estimator credits them as usual (each
+    step's log-probability is the held word's), so a run stays pure. Why: a bit its sender leaves near p = 0.5 costs
+    sampled play little, since the receiver hears both values within an episode, and stalls greedy play where the
+    word it rounds to is another goal's (docs/tuning.md session 43); an episode that hears one word throughout pays
+    for that word. Needs `message_reads` `observed`, whose word distribution an episode keeps. The episodes are the
+    batch's columns after the greedy senders' ones (as many as are left where the two fractions fill a batch)."""
+    held_messages_from: float = 0.5
+    """The schedule's progress (0 to 1) from which `held_messages` plays its episodes."""
     message_divergence: float = 0.0
     """Weight of a bonus for words that tell nearby goals apart: the mean, over every pair of goal cells at most
     `message_divergence_radius` apart, of the Jensen-Shannon divergence between the sender's message distributions
@@ -272,13 +283,21 @@ class TrainConfig:
             )
 
     def _check_greedy_senders(self) -> None:
-        for name in ("greedy_senders", "greedy_senders_from"):
+        """`greedy_senders` and `held_messages`, the two ways of sending a batch's episodes other than sampling."""
+        for name in ("greedy_senders", "greedy_senders_from", "held_messages", "held_messages_from"):
             value = getattr(self, name)
             if not (is_number(value) and 0.0 <= value <= 1.0):
                 raise bad_value(name.replace("_", "-"), value, "must be in [0, 1]")
-        if self.greedy_senders_from != 0.5 and not self.greedy_senders:
+        for name in ("greedy_senders", "held_messages"):
+            start = getattr(self, f"{name}_from")
+            if start != 0.5 and not getattr(self, name):
+                flag = name.replace("_", "-")
+                raise bad_value(f"{flag}-from", start, f"acts only with --{flag} > 0; leave it at 0.5")
+        if self.held_messages and self.model.message_reads != "observed":
             raise bad_value(
-                "greedy-senders-from", self.greedy_senders_from, "acts only with --greedy-senders > 0; leave it at 0.5"
+                "held-messages",
+                self.held_messages,
+                "acts only with --message-reads observed (a word distribution an episode keeps); leave it at 0",
             )
 
     def _check_message_divergence(self) -> None:
@@ -304,9 +323,16 @@ class TrainConfig:
 
         The count keeps the run's running total at `greedy_senders` of its episodes rather than rounding each batch,
         so a fraction a batch cannot hold still plays: one-episode batches at 0.5 alternate 0, 1, 0, 1."""
-        if not self.greedy_senders or self.schedule_progress(episodes) < self.greedy_senders_from:
+        return self._scheduled_episodes(self.greedy_senders, self.greedy_senders_from, episodes)
+
+    def held_message_episodes(self, episodes: int) -> int:
+        """How many of the next batch's episodes `held_messages` plays (after the greedy senders'), `episodes` done."""
+        return self._scheduled_episodes(self.held_messages, self.held_messages_from, episodes)
+
+    def _scheduled_episodes(self, fraction: float, start: float, episodes: int) -> int:
+        if not fraction or self.schedule_progress(episodes) < start:
             return 0
-        return math.floor(self.greedy_senders * (episodes + self.num_envs)) - math.floor(self.greedy_senders * episodes)
+        return math.floor(fraction * (episodes + self.num_envs)) - math.floor(fraction * episodes)
 
     def _check_move_decay_below(self) -> None:
         """`move_decay_below` set: it needs a move decay to start, the sync trainer's rolling length, and the oracle."""

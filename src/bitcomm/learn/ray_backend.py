@@ -86,8 +86,9 @@ class RolloutWorker:
         generator = torch.Generator().manual_seed(sample_seed(self.cfg.seed, batch))
         seed = np.random.SeedSequence(self.cfg.seed, spawn_key=(batch,))
         with flush_denormals():
-            greedy = self.cfg.greedy_sender_episodes(batch * self.cfg.num_envs)  # batches before it: full ones
-            ro = self.collector.collect(self.policy, seed, generator, greedy)
+            before = batch * self.cfg.num_envs  # the episodes of the batches before it: full ones
+            greedy, held = self.cfg.greedy_sender_episodes(before), self.cfg.held_message_episodes(before)
+            ro = self.collector.collect(self.policy, seed, generator, greedy, held)
         arrays = {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in ro._asdict().items()}
         return {"batch": batch, "version": version, "collect_s": time.perf_counter() - t0, "rollout": arrays}
 

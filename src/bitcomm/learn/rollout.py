@@ -69,31 +69,44 @@ class Collector:
         self.valid = np.zeros((T, B), dtype=bool)
 
     def collect(
-        self, net: PolicyNet, seed: np.random.SeedSequence, generator: torch.Generator, greedy_senders: int = 0
+        self,
+        net: PolicyNet,
+        seed: np.random.SeedSequence,
+        generator: torch.Generator,
+        greedy_senders: int = 0,
+        held_messages: int = 0,
     ) -> Rollout:
-        """B first episodes; in the first `greedy_senders` of them every sender sends its most likely message."""
+        """B first episodes; in the first `greedy_senders` of them every sender sends its most likely message, and in
+        the next `held_messages` each sender sends, at every step, the word it drew at the first."""
         env = VecGoalExchange(self.task, self.num_envs, seed=seed)
         goal = env.core.goal.copy()
-        B = self.num_envs
+        B, n = self.num_envs, self.task.env.n_agents
         length, team_return, success = np.zeros(B, np.int64), np.zeros(B), np.zeros(B, bool)
         t = 0
         running = np.ones(B, dtype=bool)  # slots whose first episode has not ended: the only ones the policy plays
-        sent_greedy = torch.arange(B) < greedy_senders
+        column = torch.arange(B)
+        sent_greedy = column < greedy_senders
+        held = (column >= greedy_senders) & (column < greedy_senders + held_messages)
+        if held_messages and net.message_trunk is None:
+            raise AssertionError("held messages need a message head that reads only the observed goal")
         # a message head of its own reads only the observed goal, which each slot's (first) episode keeps: its
         # logits are computed at the first step, for every step (a third to a half of acting's cost per step)
         episode_logits: torch.Tensor | None = None
+        held_bits: torch.Tensor | None = None  # (B, n, K) the words drawn at the first step, for `held` columns
 
         def policy(obs: Observation) -> tuple[np.ndarray, np.ndarray]:
-            nonlocal episode_logits
+            nonlocal episode_logits, held_bits
             self.planes[t], self.received[t], self.state[t] = obs.planes, obs.received, obs.state
             if t == 0 and net.message_trunk is not None:
                 with torch.no_grad():
                     logits = net.observed_message_logits(torch.from_numpy(obs.planes).flatten(0, 1))
-                episode_logits = logits.view(B, self.task.env.n_agents, -1)
+                episode_logits = logits.view(B, n, -1)
+                if held_messages:
+                    held_bits = net.head.sample(logits, generator).view(B, n, -1)
             # late in training most first episodes end long before the batch's last one: a slot's later
             # episodes are never learned from, so they are not acted for (they stand still, silent)
             rows = slice(None) if running.all() else np.flatnonzero(running)
-            greedy = sent_greedy[rows].repeat_interleave(self.task.env.n_agents) if greedy_senders else None
+            greedy = sent_greedy[rows].repeat_interleave(n) if greedy_senders else None
             moves, bits, lp_move, lp_msg = act(
                 net,
                 torch.from_numpy(self.planes[t][rows]).flatten(0, 1),
@@ -101,6 +114,9 @@ class Collector:
                 generator=generator,
                 greedy_messages=greedy,
                 message_logits=None if episode_logits is None else episode_logits[rows].flatten(0, 1),
+                held_messages=None
+                if held_bits is None
+                else (held[rows].repeat_interleave(n), held_bits[rows].flatten(0, 1)),
             )
             for buffer, x in zip(
                 (self.moves[t], self.bits[t], self.logp[0, t], self.logp[1, t]),

@@ -91,7 +91,13 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
         t0 = time.perf_counter()
         # rollout: batch k's episodes are fixed by (seed, k)
         seed = np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,))
-        ro = collector.collect(learner.policy, seed, generator, cfg.greedy_sender_episodes(prog.episodes))
+        ro = collector.collect(
+            learner.policy,
+            seed,
+            generator,
+            cfg.greedy_sender_episodes(prog.episodes),
+            cfg.held_message_episodes(prog.episodes),
+        )
         # update
         stats = learner.update(
             ro, generator, progress=cfg.schedule_progress(prog.episodes), rolling_length=prog.rolling_length

@@ -19,13 +19,15 @@ def act(
     generator: torch.Generator | None = None,
     greedy_messages: torch.Tensor | None = None,
     message_logits: torch.Tensor | None = None,
+    held_messages: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Moves `(N,)`, bits `(N, K)` and their log-probabilities for `(N, 2, S, S)` planes and `(N, slots, K)` bits.
 
     Sampling (the default) is how the policy was trained; `greedy` takes the most likely move and message;
     `greedy_messages (N,)` bool, the most likely message of those rows only (their moves sampled);
     `message_logits (N, out)`, the rows' message logits where the caller has them (`PolicyNet.observed_message_logits`,
-    once per episode): the network then runs its movement part alone.
+    once per episode): the network then runs its movement part alone; `held_messages`, `(N,)` bool rows and their
+    `(N, K)` bits, words the caller drew from these logits earlier in the episode, which those rows send again.
     """
     if message_logits is None:
         move_logits, message_logits = net(planes, received)
@@ -38,6 +40,8 @@ def act(
         bits = net.head.sample(message_logits, generator)
         if greedy_messages is not None:
             bits = torch.where(greedy_messages[:, None], net.head.mode(message_logits), bits)
+        if held_messages is not None:
+            bits = torch.where(held_messages[0][:, None], held_messages[1], bits)
     logp_move = torch.log_softmax(move_logits, -1).gather(-1, moves[:, None])[:, 0]
     return moves, bits, logp_move, net.head.log_prob(message_logits, bits)
 
