@@ -164,8 +164,9 @@ class TrainConfig:
     for that word. Needs `message_reads` `observed`, whose word distribution an episode keeps. The episodes are the
     batch's columns after the greedy senders' ones (as many as are left where the two fractions fill a batch). With
     `message_divergence` 1, 0.25 brought greedy play within 1.05x of the oracle on 26 of 28 seeds of the paper's task
-    (on 24 of them the divergence alone: 19); alone, on four of the default's misses, 2 of 4. Off, so that the
-    studies of docs/results.md stay the default's (docs/tuning.md session 44)."""
+    (on 24 of them the divergence alone: 19); alone, on four of the default's misses, 2 of 4 (docs/tuning.md session
+    44). Off: tried as the default in session 45, the two cost at 16x16 (sampled play 8-11 steps longer, either alone
+    2-4), and the divergence costs greedy play at 4x4."""
     held_messages_from: float = 0.5
     """The schedule's progress (0 to 1) from which `held_messages` plays its episodes."""
     message_divergence: float = 0.0
@@ -178,7 +179,8 @@ class TrainConfig:
     information term of the senders' own distributions, no target word, so a run stays pure. At 1 (radius 3) on the
     paper's task greedy play ended within 1.05x of the oracle on 19 of 24 seeds (the default: 10 of 16), with misses
     of 1.31-1.51x on hedged bits, at about 0.82x the throughput: off (docs/tuning.md session 43). With
-    `held_messages` 0.25, 22 of the same 24 (session 44)."""
+    `held_messages` 0.25, 22 of the same 24 (session 44), and the 10x10 study's four techniques learn quicker; but at
+    4x4 (radius 3 counts 90 of the 120 pairs) it leaves greedy play longer on five seeds of six (session 45)."""
     message_divergence_radius: int = 3
     """How far apart (Manhattan, in cells) two goals may be for `message_divergence` to count their pair; where a grid
     has more than 1,024 such pairs, a uniform draw of 1,024 of them enters each step."""
