@@ -165,8 +165,8 @@ class TrainConfig:
     batch's columns after the greedy senders' ones (as many as are left where the two fractions fill a batch). With
     `message_divergence` 1, 0.25 brought greedy play within 1.05x of the oracle on 26 of 28 seeds of the paper's task
     (on 24 of them the divergence alone: 19); alone, on four of the default's misses, 2 of 4 (docs/tuning.md session
-    44). Off: tried as the default in session 45, the two cost at 16x16 (sampled play 8-11 steps longer, either alone
-    2-4), and the divergence costs greedy play at 4x4."""
+    44). Off: tried as the default in session 45, held words cost at 16x16 (sampled play 2.7-2.9 steps longer than
+    the default's, paired; with the divergence 8-11), and the divergence costs greedy play at 4x4."""
     held_messages_from: float = 0.5
     """The schedule's progress (0 to 1) from which `held_messages` plays its episodes."""
     message_divergence: float = 0.0
