@@ -70,6 +70,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
     (ALL, "--train-max-steps"): {"0", "1000000000000"},
     (ALL, "--anneal-episodes"): {"0", "1000000000000"},  # 0: the schedule follows the budget; huge: barely decays
     (ALL, "--move-decay-below"): {"0", "1e300"},  # 0: the decay from the first episode; huge: from the second batch
+    (ALL, "--senders-wait-below"): {"0", "1e300"},  # 0: the senders at their `_from`; huge: from the second batch
     (ALL, "--greedy-senders"): {"0"},  # 0: off
     (ALL, "--greedy-senders-from"): {"0"},  # 0: from the first batch (the default recipe's greedy senders)
     (ALL, "--held-messages"): {"0"},  # 0: off

@@ -28,6 +28,8 @@ from bitcomm.learn.run import train
 
 BITS = 2
 TWO = TaskConfig(EnvConfig(size=4, max_steps=12), ChannelConfig(bits=BITS))
+FOUR = TaskConfig(EnvConfig(size=4, max_steps=12), ChannelConfig(bits=4))
+"""TWO with enough bits for the oracle to name every cell."""
 # three agents in a ring, agent 0 sending to both others: a message with two recipients
 THREE = TaskConfig(
     EnvConfig(size=4, n_agents=3, max_steps=12), ChannelConfig(bits=BITS, recipients=((1, 2), (2,), (0,)), delay=2)
@@ -243,6 +245,32 @@ def test_greedy_senders_start_at_their_point_of_the_schedule() -> None:
     assert make_train_config("paper", TWO).greedy_senders == make_train_config("supervised", TWO).greedy_senders == 0
 
 
+def test_greedy_senders_and_held_words_wait_for_the_protocol_to_form() -> None:
+    """`senders_wait_below`: until the protocol has formed (`formed` None) neither plays; once it has, each starts at
+    the later of its own `_from` and the progress where it formed."""
+    cfg = make_train_config(
+        "reinforced", FOUR, num_envs=8, episodes=1000, greedy_senders=0.25, held_messages=0.25, held_messages_from=0.2
+    )
+    assert cfg.senders_wait_below == 1.15  # the recipe's
+    for scheduled in (cfg.greedy_sender_episodes, cfg.held_message_episodes):
+        assert [scheduled(e, None) for e in (0, 500, 1000)] == [0, 0, 0]
+        assert [scheduled(e, 0.7) for e in (500, 699, 700)] == [0, 0, 2]
+    assert [cfg.greedy_sender_episodes(e, 0.1) for e in (499, 500)] == [0, 2]  # formed early: from halfway, as before
+    assert [cfg.held_message_episodes(e, 0.1) for e in (199, 200)] == [0, 2]
+
+
+def test_the_recipe_waits_for_the_protocol_only_where_the_oracle_can_play() -> None:
+    """The level is a multiple of the oracle's episode length: where the oracle cannot play the task (too few bits to
+    name a cell) the recipe starts the senders at their `_from`, and an explicit wait is one error line."""
+    assert make_train_config("reinforced", TWO).senders_wait_below == 0.0
+    assert make_train_config("paper", FOUR).senders_wait_below == 0.0
+    assert make_train_config("supervised", FOUR).senders_wait_below == 0.0
+    with pytest.raises(ConfigError, match="invalid senders-wait-below=1.2: needs the oracle"):
+        make_train_config("reinforced", TWO, senders_wait_below=1.2)
+    with pytest.raises(ConfigError, match="invalid senders-wait-below=-1.0: must be a finite number >= 0"):
+        make_train_config("reinforced", FOUR, senders_wait_below=-1.0)
+
+
 def test_greedy_senders_keep_their_fraction_of_the_run_where_a_batch_cannot_hold_it() -> None:
     one = make_train_config("reinforced", TWO, num_envs=1, minibatches=1, episodes=1000)  # the paper's batches
     assert [one.greedy_sender_episodes(e) for e in range(500, 506)] == [0, 1, 0, 1, 0, 1]
@@ -300,6 +328,29 @@ def test_held_messages_follow_their_schedule_and_need_a_head_that_reads_the_goal
     ]:
         with pytest.raises(ConfigError, match=f"invalid {flag}="):
             make_train_config("reinforced", TWO, **bad)
+
+
+@pytest.mark.parametrize("mode", ["sync", "a3c"])
+def test_every_trainer_waits_for_the_protocol_before_its_greedy_senders(mode: str, tmp_path: Path) -> None:
+    """`senders_wait_below`: a level no run reaches leaves every episode sampled; one any run reaches (100x the
+    oracle's length) lets the greedy senders play after the first batches, in the a3c workers as in the sync
+    trainer (the a3c main process watches the rolling length and tells its workers; Ray's driver passes it with
+    each batch: tests/test_ray.py)."""
+    import csv
+
+    def sampled_everywhere(level: float) -> bool:
+        cfg = make_train_config(
+            "reinforced", FOUR, num_envs=8, episodes=128, mode=mode, workers=2, checkpoint_seconds=1e9,
+            greedy_senders=1.0, greedy_senders_from=0.0, senders_wait_below=level,
+        )  # fmt: skip
+        out = tmp_path / str(level)
+        train(cfg, out, progress=False)
+        with (out / "metrics.csv").open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        return all(r["charts/episode_length_sampled_rolling"] == r["charts/episode_length_rolling"] for r in rows)
+
+    assert sampled_everywhere(0.01)
+    assert not sampled_everywhere(100.0)
 
 
 @pytest.mark.parametrize("mode", ["sync", "a3c"])

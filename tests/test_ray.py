@@ -140,7 +140,7 @@ def test_async_keeps_its_staleness_bound_and_runs_move_between_local_and_ray(clu
 def test_a_rollout_actor_plays_the_greedy_senders_and_held_messages_of_its_batch_s_place_in_the_schedule() -> None:
     """Batch k of a run follows k full batches (`k * num_envs` episodes), so an actor knows from k alone how many
     of its episodes send the most likely message (`greedy_senders`) or one drawn word (`held_messages`), as the local
-    trainer does."""
+    trainer does, once the protocol has formed."""
     from bitcomm.learn.ray_backend import RolloutWorker
 
     cfg = tiny_config(
@@ -161,6 +161,9 @@ def test_a_rollout_actor_plays_the_greedy_senders_and_held_messages_of_its_batch
         bool((ro["bits"][ro["valid"][:, b], b] == ro["bits"][0, b]).all()) for ro in (before, after) for b in range(8)
     ]
     assert one_word == [False] * 8 + [True] * 4 + [False] * 4  # then the held messages' columns (`held_messages`)
+    # `senders_wait_below`: the driver passes where the protocol formed (None: not yet); neither plays before
+    for formed in (None, 0.9):
+        assert not worker.collect(weights, 0, 63, formed)["rollout"]["sent_greedy"].any()
 
 
 def test_joined_batches_keep_each_episode_and_pad_time_with_invalid_steps() -> None:

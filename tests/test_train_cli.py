@@ -114,23 +114,47 @@ def test_sync_runs_are_reproducible(tmp_path: Path) -> None:
     assert all(torch.equal(wa[k], wk[k]) for k in wa)
 
 
-def test_a_move_decay_that_waited_resumes_where_it_started(tmp_path: Path) -> None:
-    """The progress where a `move_decay_below` decay started is in the checkpoint: a run trained in two pieces
-    ends where the unbroken one did, move scale and weights alike."""
+def train_whole_and_in_pieces(tmp_path: Path, **options: Any) -> None:
+    """The tiny run with `options` trained whole into `tmp_path / "whole"`, and into `tmp_path / "pieces"` in two
+    halves (the second resumed from the first's checkpoint), on one schedule over the whole budget."""
     from bitcomm.learn.config import TrainConfig
     from bitcomm.learn.run import train
     from bitcomm.learn.run_folder import resume_config
 
-    torch.set_num_threads(1)
-    options = dict(move_decay_below=100.0, anneal_episodes=BUDGET)  # starts on the second batch
+    options["anneal_episodes"] = BUDGET
     train(tiny_config(**options), tmp_path / "whole", progress=False)
     train(tiny_config(**options, episodes=BUDGET // 2), tmp_path / "pieces", progress=False)
-    train(
-        resume_config(tmp_path / "pieces", TrainConfig.from_dict, BUDGET),
-        tmp_path / "pieces",
-        resume=True,
-        progress=False,
-    )
+    pieces = resume_config(tmp_path / "pieces", TrainConfig.from_dict, BUDGET)
+    train(pieces, tmp_path / "pieces", resume=True, progress=False)
+
+
+def test_greedy_senders_wait_for_the_protocol_and_a_checkpoint_keeps_where_it_formed(tmp_path: Path) -> None:
+    """`senders_wait_below`: a run whose rolling length never reaches the level plays no greedy senders' episode; one
+    that reaches it before the senders' `_from` is the run without the wait, bit for bit (the paper's task, where the
+    protocol forms in the budget's first quarter); and one that reaches it after, trained in two pieces, ends where
+    the unbroken one did."""
+    from bitcomm.learn.run import train
+
+    torch.set_num_threads(1)
+    sampled, mixed = "charts/episode_length_sampled_rolling", "charts/episode_length_rolling"
+    train(tiny_config(senders_wait_below=0.01), tmp_path / "never", progress=False)
+    assert all(r[sampled] == r[mixed] for r in rows(tmp_path / "never"))
+    # 100x the oracle's length: reached at the second update (the first sees no rolling length), progress 0.1
+    train(tiny_config(senders_wait_below=100.0), tmp_path / "early", progress=False)
+    train(tiny_config(senders_wait_below=0.0), tmp_path / "plain", progress=False)
+    assert learning_columns(tmp_path / "early") == learning_columns(tmp_path / "plain")
+    assert rows(tmp_path / "plain")[-1][sampled] != rows(tmp_path / "plain")[-1][mixed]  # the senders did play
+
+    train_whole_and_in_pieces(tmp_path, senders_wait_below=100.0, greedy_senders_from=0.0)
+    assert [r[sampled] == r[mixed] for r in rows(tmp_path / "whole")][:3] == [True, True, False]
+    assert learning_columns(tmp_path / "pieces") == learning_columns(tmp_path / "whole")
+
+
+def test_a_move_decay_that_waited_resumes_where_it_started(tmp_path: Path) -> None:
+    """The progress where a `move_decay_below` decay started is in the checkpoint: a run trained in two pieces
+    ends where the unbroken one did, move scale and weights alike."""
+    torch.set_num_threads(1)
+    train_whole_and_in_pieces(tmp_path, move_decay_below=100.0)  # starts on the second batch
     scales = [float(r["schedule/move_scale"]) for r in rows(tmp_path / "whole")]
     assert scales[0] == 1.0 and scales[1] == 1.0 and scales[-1] == pytest.approx(1 / 9)  # from 1/10 to 9/10
     assert learning_columns(tmp_path / "pieces") == learning_columns(tmp_path / "whole")

@@ -121,6 +121,7 @@ def _worker(
     claimed: Any,
     next_batch: Any,
     results: Any,
+    formed: Any,
 ) -> None:
     try:
         from bitcomm.learn.learner import Learner
@@ -154,7 +155,9 @@ def _worker(
             pull(local, remote)
             with flush_denormals():
                 seed = np.random.SeedSequence(cfg.seed, spawn_key=(k,))
-                greedy, held = cfg.greedy_sender_episodes(claimed_before), cfg.held_message_episodes(claimed_before)
+                start = formed.value if formed.value >= 0 else None  # where the main process saw the protocol form
+                greedy = cfg.greedy_sender_episodes(claimed_before, start)
+                held = cfg.held_message_episodes(claimed_before, start)
                 ro = collector.collect(learner.policy, seed, generator, greedy, held)
                 stats = learner.update(ro, generator, progress=cfg.schedule_progress(claimed_before))
             sent_greedy = ro.sent_greedy.numpy().copy()
@@ -191,10 +194,13 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     lock = ctx.Lock()
     claimed = ctx.Value("q", prog.episodes, lock=False)
     next_batch = ctx.Value("q", start_batch, lock=False)
+    formed = ctx.Value("d", _or_unset(learner.senders_wait.start), lock=False)  # SendersWait.start, -1: not yet
     results = ctx.Queue()
     shared = (learner.policy, learner.critic, learner.codebook)
     procs = [
-        ctx.Process(target=_worker, args=(w, cfg, shared, states, lock, claimed, next_batch, results), daemon=True)
+        ctx.Process(
+            target=_worker, args=(w, cfg, shared, states, lock, claimed, next_batch, results, formed), daemon=True
+        )
         for w in range(cfg.workers)
     ]
 
@@ -233,6 +239,8 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 continue
             _, _, length, team_return, success, sent_greedy, stats = msg
             prog.wall_s = wall0 + time.perf_counter() - t_start
+            learner.senders_wait.watch(prog.rolling_length, cfg.schedule_progress(prog.episodes))  # as sync's
+            formed.value = _or_unset(learner.senders_wait.start)
             row = prog.add_batch(length, team_return, int(length.sum()) * n, sent_greedy=sent_greedy)
             row.update({"charts/success": float(success.mean()), **stats})
             finite_or_stop(out, learner, prog.episodes)
@@ -254,6 +262,11 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
             p.join(timeout=5)
         bar.close()
         logger.close()
+
+
+def _or_unset(start: float | None) -> float:
+    """A watch's start as a shared double: -1 for not yet."""
+    return -1.0 if start is None else start
 
 
 def _clone(v: Any) -> Any:

@@ -169,6 +169,13 @@ class TrainConfig:
     the default's, paired; with the divergence 8-11), and the divergence costs greedy play at 4x4."""
     held_messages_from: float = 0.5
     """The schedule's progress (0 to 1) from which `held_messages` plays its episodes."""
+    senders_wait_below: float = 0.0
+    """Start the greedy senders and held words (`greedy_senders`, `held_messages`) only once the rolling training
+    episode length has been at most this multiple of the oracle's, and not before their own `_from` (0: at their
+    `_from`, whatever the play). Their episodes teach the receivers the words greedy play sends; where those words
+    have not formed by halfway (16x16, 32x32) they teach words the senders are about to change, and the sampled play of
+    every default run was set back there (docs/tuning.md sessions 38 and 46). On (1.15) in the `reinforced` recipe
+    since session 46; where the oracle cannot play the task the recipe leaves it at 0."""
     message_divergence: float = 0.0
     """Weight of a bonus for words that tell nearby goals apart: the mean, over every pair of goal cells at most
     `message_divergence_radius` apart, of the Jensen-Shannon divergence between the sender's message distributions
@@ -240,6 +247,9 @@ class TrainConfig:
         check_number("move_decay_below", self.move_decay_below, 0.0)
         if self.move_decay_below:
             self._check_move_decay_below()
+        check_number("senders_wait_below", self.senders_wait_below, 0.0)
+        if self.senders_wait_below:
+            self._check_oracle("senders-wait-below", self.senders_wait_below)
         if self.staleness and self.backend != "ray":
             raise bad_value("staleness", self.staleness, "acts only on --backend ray; leave it at 0")
         check_int("held_out_every", self.held_out_every, 0)
@@ -324,19 +334,20 @@ class TrainConfig:
                 "acts only with --message-reads observed (a word distribution per goal); leave it at 0",
             )
 
-    def greedy_sender_episodes(self, episodes: int) -> int:
-        """How many of the next batch's episodes (its first columns) `greedy_senders` plays, `episodes` played.
+    def greedy_sender_episodes(self, episodes: int, formed: float | None = 0.0) -> int:
+        """How many of the next batch's episodes (its first columns) `greedy_senders` plays, `episodes` played and
+        the protocol formed at progress `formed` (`senders_wait_below`; None: not yet).
 
         The count keeps the run's running total at `greedy_senders` of its episodes rather than rounding each batch,
         so a fraction a batch cannot hold still plays: one-episode batches at 0.5 alternate 0, 1, 0, 1."""
-        return self._scheduled_episodes(self.greedy_senders, self.greedy_senders_from, episodes)
+        return self._scheduled_episodes(self.greedy_senders, self.greedy_senders_from, episodes, formed)
 
-    def held_message_episodes(self, episodes: int) -> int:
-        """How many of the next batch's episodes `held_messages` plays (after the greedy senders'), `episodes` done."""
-        return self._scheduled_episodes(self.held_messages, self.held_messages_from, episodes)
+    def held_message_episodes(self, episodes: int, formed: float | None = 0.0) -> int:
+        """How many of the next batch's episodes `held_messages` plays (after the greedy senders'), as above."""
+        return self._scheduled_episodes(self.held_messages, self.held_messages_from, episodes, formed)
 
-    def _scheduled_episodes(self, fraction: float, start: float, episodes: int) -> int:
-        if not fraction or self.schedule_progress(episodes) < start:
+    def _scheduled_episodes(self, fraction: float, start: float, episodes: int, formed: float | None) -> int:
+        if not fraction or formed is None or self.schedule_progress(episodes) < max(start, formed):
             return 0
         return math.floor(fraction * (episodes + self.num_envs)) - math.floor(fraction * episodes)
 
@@ -349,10 +360,14 @@ class TrainConfig:
             )
         if self.mode != "sync":
             raise bad_value("move-decay-below", value, "acts only in sync mode; leave it at 0")
+        self._check_oracle("move-decay-below", value)
+
+    def _check_oracle(self, flag: str, value: float) -> None:
+        """A threshold that is a multiple of the oracle's episode length needs an oracle that can play the task."""
         try:
-            OraclePolicy(self.task)  # the threshold is a multiple of its episode length
+            OraclePolicy(self.task)
         except ConfigError as e:
-            raise bad_value("move-decay-below", value, f"needs the oracle, which cannot play this task ({e})") from None
+            raise bad_value(flag, value, f"needs the oracle, which cannot play this task ({e})") from None
 
     @property
     def training_task(self) -> TaskConfig:
@@ -397,6 +412,15 @@ class TrainConfig:
 MODEL_OPTIONS = {f.name for f in dataclasses.fields(ModelConfig)}
 
 
+def oracle_plays(task: TaskConfig) -> bool:
+    """Whether the oracle can play `task` (enough bits to name a cell, every agent hearing its goal)."""
+    try:
+        OraclePolicy(task)
+    except ConfigError:
+        return False
+    return True
+
+
 def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = None, **overrides: Any) -> TrainConfig:
     """A TrainConfig from a recipe plus explicit options (None means "the recipe's value")."""
     if recipe not in RECIPES:
@@ -405,6 +429,8 @@ def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = No
     values = dict(RECIPES[recipe])
     if values.get("entropy_message_marginal", 0.0) > 0 and task.channel.bits > MAX_MARGINAL_BITS:
         values.update(WIDE_MESSAGES)  # an explicit --entropy-message-marginal is still refused there
+    if values.get("senders_wait_below", 0.0) > 0 and not oracle_plays(task):
+        values["senders_wait_below"] = 0.0  # no level to wait for; an explicit --senders-wait-below is still refused
     values.update({k: v for k, v in overrides.items() if v is not None})
     model = ModelConfig(**{k: values.pop(k) for k in list(values) if k in MODEL_OPTIONS})
     return TrainConfig(task=task, model=model, recipe=recipe, **values)

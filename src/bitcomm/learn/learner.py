@@ -24,6 +24,7 @@ from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.distinct import distinct_rows
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
+from bitcomm.learn.level_watch import SendersWait
 from bitcomm.learn.move_decay import MoveDecay
 from bitcomm.learn.objectives import Routes, StepBatch, Term, clip_groups, critic_mse, policy_terms
 from bitcomm.learn.precision import update_precision
@@ -95,6 +96,7 @@ class Learner:
         self.codebook = CodeBook(task.env.size**2, self.policy.head) if cfg.code_coef > 0 else None
         self.progress = 0.0  # of the schedules, as of the last update
         self.move_decay = MoveDecay.from_config(cfg)
+        self.senders_wait = SendersWait.from_config(cfg)  # the trainer reads it for the next batch's senders
         self.helper: ThreadPoolExecutor | None = None  # where the critic steps run (bitcomm.learn.beside)
 
     @property
@@ -238,10 +240,11 @@ class Learner:
     ) -> dict[str, float]:
         """One update on the batch `ro`; `progress` is the fraction of the budget played so far (`anneal_lr`,
         `anneal_entropy`, `anneal_move_entropy`), `rolling_length` the rolling mean training episode length before
-        this batch (`move_decay_below`)."""
+        this batch (`move_decay_below`, `senders_wait_below`)."""
         cfg = self.cfg
         self.progress = progress
         self.move_decay.watch(rolling_length, progress)
+        self.senders_wait.watch(rolling_length, progress)
         if cfg.anneal_lr:
             for opt, bases in zip((self.opt_policy, self.opt_critic), self.base_lrs, strict=True):
                 for group, base in zip(opt.param_groups, bases, strict=True):

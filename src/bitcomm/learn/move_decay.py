@@ -12,37 +12,18 @@ the first episode, which stays the default.
 
 from __future__ import annotations
 
-from bitcomm.errors import bad_value
 from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.level_watch import LevelWatch
 
 
-class MoveDecay:
-    """The scale of the move regularisers as the schedule is played (1 whole, 0 gone)."""
-
-    def __init__(self, threshold: float | None) -> None:
-        self.threshold = threshold
-        """The rolling episode length at or below which the decay starts (None: from the first episode)."""
-        self.start: float | None = 0.0 if threshold is None else None
-        """The schedule's progress (`TrainConfig.schedule_progress`) where the decay started; None: not yet."""
+class MoveDecay(LevelWatch):
+    """The scale of the move regularisers as the schedule is played (1 whole, 0 gone); its watch's `start` is
+    where the decay starts."""
 
     @classmethod
     def from_config(cls, cfg: TrainConfig) -> MoveDecay:
         """The decay `cfg` asks for; with `move_decay_below` the oracle's level on the task is measured once."""
-        if cfg.move_decay_below == 0:
-            return cls(None)
-        from bitcomm.learn.run_folder import oracle_level
-
-        oracle = oracle_level(cfg)
-        if oracle is None:
-            raise bad_value("move-decay-below", cfg.move_decay_below, "needs the oracle, which cannot play this task")
-        return cls(cfg.move_decay_below * oracle)
-
-    def watch(self, rolling_length: float | None, progress: float) -> None:
-        """Start the decay at `progress` if it has not started and the rolling length has reached the threshold."""
-        if self.start is not None or self.threshold is None or rolling_length is None:
-            return
-        if rolling_length <= self.threshold:
-            self.start = progress
+        return cls.at_multiple(cfg.move_decay_below, cfg, "move-decay-below")
 
     def scale(self, progress: float) -> float:
         """The move regularisers' weight at `progress`: 1 until the start, then linear to 0 at progress 1."""

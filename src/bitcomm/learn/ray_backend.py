@@ -77,8 +77,11 @@ class RolloutWorker:
         self.collector = Collector(self.cfg.training_task, self.cfg.num_envs)
         self.version = -1
 
-    def collect(self, weights: dict[str, np.ndarray], version: int, batch: int) -> dict[str, Any]:
-        """Batch `batch` played with weights `version`: its Rollout as numpy arrays plus the bookkeeping."""
+    def collect(
+        self, weights: dict[str, np.ndarray], version: int, batch: int, formed: float | None = 0.0
+    ) -> dict[str, Any]:
+        """Batch `batch` played with weights `version`, the protocol formed at progress `formed` (the driver's
+        `SendersWait.start`): its Rollout as numpy arrays plus the bookkeeping."""
         if version != self.version:
             self.policy.load_state_dict({k: torch.tensor(v) for k, v in weights.items()})
             self.version = version
@@ -87,7 +90,8 @@ class RolloutWorker:
         seed = np.random.SeedSequence(self.cfg.seed, spawn_key=(batch,))
         with flush_denormals():
             before = batch * self.cfg.num_envs  # the episodes of the batches before it: full ones
-            greedy, held = self.cfg.greedy_sender_episodes(before), self.cfg.held_message_episodes(before)
+            greedy = self.cfg.greedy_sender_episodes(before, formed)
+            held = self.cfg.held_message_episodes(before, formed)
             ro = self.collector.collect(self.policy, seed, generator, greedy, held)
         arrays = {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in ro._asdict().items()}
         return {"batch": batch, "version": version, "collect_s": time.perf_counter() - t0, "rollout": arrays}
@@ -162,7 +166,7 @@ class Actors:
         self.token = uuid.uuid4().hex[:8]
         self.generation = [0] * cfg.workers
         self.actors = [self._start(w) for w in range(cfg.workers)]
-        self.inflight: dict[Any, tuple[int, int]] = {}  # object ref -> (worker, batch)
+        self.inflight: dict[Any, tuple[int, int, float | None]] = {}  # object ref -> (worker, batch, formed)
         self.restarts = 0
         self.failures = [0] * cfg.workers  # deaths in a row without a batch delivered
 
@@ -170,14 +174,14 @@ class Actors:
         name = f"{ACTOR_PREFIX}-{self.token}-{w}.{self.generation[w]}"
         return self.cls.options(name=name).remote(self.config)  # type: ignore[attr-defined]
 
-    def launch(self, w: int, batch: int, weights: Any, version: int) -> None:
-        self.inflight[self.actors[w].collect.remote(weights, version, batch)] = (w, batch)
+    def launch(self, w: int, batch: int, weights: Any, version: int, formed: float | None = 0.0) -> None:
+        self.inflight[self.actors[w].collect.remote(weights, version, batch, formed)] = (w, batch, formed)
 
     def receive(self, weights: Any, version: int) -> tuple[int, dict[str, Any]] | None:
         """The next batch to arrive, with its worker; None when that worker died (it is replaced and asked for
         the same batch with the latest weights)."""
         ready, _ = self.ray.wait(list(self.inflight), num_returns=1)
-        w, batch = self.inflight.pop(ready[0])
+        w, batch, formed = self.inflight.pop(ready[0])
         try:
             result = self.ray.get(ready[0])
         except self.ray.exceptions.RayActorError as err:
@@ -190,7 +194,7 @@ class Actors:
             self.restarts += 1
             self.generation[w] += 1
             self.actors[w] = self._start(w)
-            self.launch(w, batch, weights, version)
+            self.launch(w, batch, weights, version, formed)
             return None
         self.failures[w] = 0
         return w, result
@@ -290,7 +294,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
 
     def launch(w: int) -> None:
         nonlocal next_batch
-        actors.launch(w, next_batch, weights, version)
+        actors.launch(w, next_batch, weights, version, learner.senders_wait.start)
         next_batch += 1
 
     def wanted() -> bool:

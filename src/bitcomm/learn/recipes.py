@@ -15,7 +15,9 @@ Plain data with no heavy imports, so the command line can list the names without
   moves end as good as sampled ones; since session 35 a message head that reads only the goal the
   sender observes (`message_reads` `observed`, session 28) and, from halfway, half of each batch played
   with every sender's most likely message (`greedy_senders`, session 34), so that greedy play sends
-  the words the receivers learned (each option named and measured in docs/tuning.md).
+  the words the receivers learned; since session 46 those start only once the protocol has formed (the rolling
+  length at most 1.15x the oracle's, `senders_wait_below`), so that on grids where it forms late they do not
+  teach words about to change (each option named and measured in docs/tuning.md).
 - `supervised`: `reinforced` plus three auxiliary losses that hand the sender a protocol (a
   self-labelled code book, a privileged goal label for the receiver's message decoder, and the
   sender's grounding in the goal it sees). Fast, but its messages are supervised: it bypasses both
@@ -54,6 +56,7 @@ _REINFORCED: dict[str, Any] = dict(
     anneal_move_entropy=True,
     message_reads="observed",
     greedy_senders=0.5,
+    senders_wait_below=1.15,
 )
 
 _SUPERVISED: dict[str, Any] = dict(
@@ -73,6 +76,7 @@ _SUPERVISED: dict[str, Any] = dict(
     anneal_move_entropy=False,
     message_reads="all",
     greedy_senders=0.0,
+    senders_wait_below=0.0,
 )
 """The former `fast` recipe, as measured in docs/tuning.md sessions 1-7."""
 
@@ -103,6 +107,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         message_map=False,
         message_reads="all",
         greedy_senders=0.0,
+        senders_wait_below=0.0,
     ),
 }
 """Each recipe's values for the learning options; any option given explicitly overrides them. Every recipe names

@@ -95,8 +95,8 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
             learner.policy,
             seed,
             generator,
-            cfg.greedy_sender_episodes(prog.episodes),
-            cfg.held_message_episodes(prog.episodes),
+            cfg.greedy_sender_episodes(prog.episodes, learner.senders_wait.start),
+            cfg.held_message_episodes(prog.episodes, learner.senders_wait.start),
         )
         # update
         stats = learner.update(

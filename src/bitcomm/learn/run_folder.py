@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import functools
 import json
 import math
 import os
@@ -45,6 +46,7 @@ from bitcomm.checkpoint import (
     resolve,
     save_checkpoint,
 )
+from bitcomm.config import TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
@@ -84,11 +86,18 @@ def _versions() -> dict[str, str]:
 
 def oracle_level(cfg: TrainConfig, episodes: int = 2000) -> float | None:
     """The oracle's mean episode length on the task (None where the oracle cannot play it)."""
+    return _oracle_level(cfg.task, cfg.seed, episodes)
+
+
+@functools.lru_cache(maxsize=16)
+def _oracle_level(task: TaskConfig, seed: int, episodes: int) -> float | None:
+    """`oracle_level`, measured once per task and seed in a process: a run's config.json and the schedules that wait
+    for the protocol (`bitcomm.learn.level_watch`) ask for the same figure."""
     from bitcomm.policies.evaluation import evaluate
     from bitcomm.policies.reference import OraclePolicy
 
     try:
-        return evaluate(OraclePolicy(cfg.task), cfg.task, episodes, seed=cfg.seed).mean_episode_length
+        return evaluate(OraclePolicy(task), task, episodes, seed=seed).mean_episode_length
     except ConfigError:
         return None
 
@@ -396,6 +405,10 @@ class Progress:
         )
 
 
+WATCHES = ("move_decay", "senders_wait")
+"""The grid learner's `bitcomm.learn.level_watch` watches: a checkpoint holds where each started."""
+
+
 def learner_state(learner: Any, generator: torch.Generator | None = None) -> dict[str, Any]:
     """What a checkpoint holds besides the weights and the counters so that a resumed run continues as if
     never stopped: both optimizers' moments and the random streams (`generator`: the trainer's own, if any)."""
@@ -406,9 +419,10 @@ def learner_state(learner: Any, generator: torch.Generator | None = None) -> dic
     if generator is not None:
         state["generator"] = generator.get_state()
     state["torch_rng"] = torch.get_rng_state()
-    move_decay = getattr(learner, "move_decay", None)  # the grid learner's, where it waits for the protocol
-    if move_decay is not None and move_decay.threshold is not None and move_decay.start is not None:
-        state["move_decay_start"] = move_decay.start
+    for name in WATCHES:  # the grid learner's schedules that wait for the protocol, where they started
+        watch = getattr(learner, name, None)
+        if watch is not None and watch.waits and watch.start is not None:
+            state[f"{name}_start"] = watch.start
     return state
 
 
@@ -438,8 +452,9 @@ def restore_learner(learner: Any, saved: dict[str, Any]) -> None:
         getattr(learner, name).load_state_dict(sd)
     load_optimizer(learner.opt_policy, saved["opt_policy"])
     load_optimizer(learner.opt_critic, saved["opt_critic"])
-    if "move_decay_start" in saved:
-        learner.move_decay.start = float(saved["move_decay_start"])
+    for name in WATCHES:
+        if f"{name}_start" in saved:
+            getattr(learner, name).start = float(saved[f"{name}_start"])
 
 
 def resume_config(out: Path, from_dict: Callable[[dict[str, Any]], ConfigT], episodes: int | None = None) -> ConfigT:
