@@ -347,6 +347,8 @@ def test_every_trainer_waits_for_the_protocol_before_its_greedy_senders(mode: st
         train(cfg, out, progress=False)
         with (out / "metrics.csv").open(newline="") as f:
             rows = list(csv.DictReader(f))
+        formed = [r["schedule/protocol_formed"] for r in rows]  # the log says from where they may play
+        assert formed == sorted(formed) and (formed[-1] == "1.0") == (level > 1)
         return all(r["charts/episode_length_sampled_rolling"] == r["charts/episode_length_rolling"] for r in rows)
 
     assert sampled_everywhere(0.01)

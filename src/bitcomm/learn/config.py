@@ -143,15 +143,15 @@ class TrainConfig:
     it; at 10x10 the decay from the start is the better one (docs/tuning.md session 23). Sync mode only, where one
     learner sees the rolling length."""
     greedy_senders: float = 0.0
-    """Fraction of each batch's episodes in which every sender sends its most likely message (moves still sampled),
-    from `greedy_senders_from` of the schedule on (off: 0). Those episodes' message advantages are zero, so the
-    message head learns from sampled messages alone, while the receivers also learn to act on the words greedy play
-    sends; every gradient still comes from the estimator's term, so a run stays pure. The episodes are the first
-    columns of the batch (in `a3c` mode and on Ray, of each worker's batch, by the episodes played before it). With
-    `message_reads` `observed` (one word distribution per goal) 0.5 from halfway brought greedy play within 1.05x of
-    the oracle on 11 of 16 seeds of the paper's task and within 1.10x on all (the head that reads everything, without
-    it: about one in four, worst 1.3-1.8x); with that head it changes little (docs/tuning.md session 34). On (0.5) in
-    the `reinforced` recipe since session 35."""
+    """Fraction of each batch's episodes in which every sender sends its most likely message (moves still sampled), from
+    `greedy_senders_from` of the schedule on, once the protocol has formed (`senders_wait_below`) (off: 0). Those
+    episodes' message advantages are zero, so the message head learns from sampled messages alone, while the receivers
+    also learn to act on the words greedy play sends; every gradient still comes from the estimator's term, so a run
+    stays pure. The episodes are the first columns of the batch (in `a3c` mode and on Ray, of each worker's batch, by
+    the episodes played before it). With `message_reads` `observed` (one word distribution per goal) 0.5 from halfway
+    brought greedy play within 1.05x of the oracle on 11 of 16 seeds of the paper's task and within 1.10x on all (the
+    head that reads everything, without it: about one in four, worst 1.3-1.8x); with that head it changes little
+    (docs/tuning.md session 34). On (0.5) in the `reinforced` recipe since session 35."""
     greedy_senders_from: float = 0.5
     """The schedule's progress (0 to 1) from which `greedy_senders` plays its episodes."""
     held_messages: float = 0.0
