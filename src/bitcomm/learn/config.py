@@ -364,10 +364,9 @@ class TrainConfig:
 
     def _check_oracle(self, flag: str, value: float) -> None:
         """A threshold that is a multiple of the oracle's episode length needs an oracle that can play the task."""
-        try:
-            OraclePolicy(self.task)
-        except ConfigError as e:
-            raise bad_value(flag, value, f"needs the oracle, which cannot play this task ({e})") from None
+        refusal = oracle_refusal(self.task)
+        if refusal is not None:
+            raise bad_value(flag, value, f"needs the oracle, which cannot play this task ({refusal})")
 
     @property
     def training_task(self) -> TaskConfig:
@@ -412,13 +411,14 @@ class TrainConfig:
 MODEL_OPTIONS = {f.name for f in dataclasses.fields(ModelConfig)}
 
 
-def oracle_plays(task: TaskConfig) -> bool:
-    """Whether the oracle can play `task` (enough bits to name a cell, every agent hearing its goal)."""
+def oracle_refusal(task: TaskConfig) -> ConfigError | None:
+    """Why the oracle cannot play `task` (too few bits to name a cell, an agent that never hears its goal), or None
+    where it can."""
     try:
         OraclePolicy(task)
-    except ConfigError:
-        return False
-    return True
+    except ConfigError as e:
+        return e
+    return None
 
 
 def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = None, **overrides: Any) -> TrainConfig:
@@ -429,7 +429,7 @@ def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = No
     values = dict(RECIPES[recipe])
     if values.get("entropy_message_marginal", 0.0) > 0 and task.channel.bits > MAX_MARGINAL_BITS:
         values.update(WIDE_MESSAGES)  # an explicit --entropy-message-marginal is still refused there
-    if values.get("senders_wait_below", 0.0) > 0 and not oracle_plays(task):
+    if values.get("senders_wait_below", 0.0) > 0 and oracle_refusal(task) is not None:
         values["senders_wait_below"] = 0.0  # no level to wait for; an explicit --senders-wait-below is still refused
     values.update({k: v for k, v in overrides.items() if v is not None})
     model = ModelConfig(**{k: values.pop(k) for k in list(values) if k in MODEL_OPTIONS})
