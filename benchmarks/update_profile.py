@@ -3,8 +3,10 @@
 Plays one batch of the recipe (default: `reinforced`, the default task) with a fresh policy, warms up with
 one update, then profiles `--updates` more on the same batch and prints the share of self CPU time of each
 group of operators (matrix products, activations, indexing and copies, the optimizer, the rest) and the
-slowest operators. The last line printed is one JSON object. It answers "what would a faster update have
-to remove": `benchmarks/train_speed.py` measures the throughput itself.
+slowest operators, and the operations of its matrix products (one more update profiled `with_flops`: per update,
+per agent-step, and per second of their own time, to set against what a core can do). The last line printed is one
+JSON object. It answers "what would a faster update have to remove": `benchmarks/train_speed.py` measures the
+throughput itself.
 
 `--size`, `--bits` and `--messages` profile another task or message head (`--size 32 --bits 10 --messages
 onehot`: the 1,024-output head of the 32x32 study).
@@ -82,6 +84,13 @@ def main() -> None:
     shares: dict[str, float] = defaultdict(float)
     for name, t in ops:
         shares[group_of(name)] += t / total
+    # one more update with the products' shapes recorded (which slows every operator, so the shares above are timed
+    # without it): the operations the profiler counts, and the products' own time
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True, with_flops=True) as counting:
+        learner.update(ro, generator)
+    counted = [e for e in counting.key_averages() if e.flops]
+    flops = sum(e.flops for e in counted)
+    flops_s = sum(e.self_cpu_time_total for e in counted) / 1e6
     agent_steps = int(ro.length.sum()) * cfg.task.env.n_agents
     task_name = f"{a.size}x{a.size}, K={a.bits}, {cfg.model.messages}"
     per_update = total / 1e6 / a.updates
@@ -92,6 +101,10 @@ def main() -> None:
     )
     for g, share in sorted(shares.items(), key=lambda kv: -kv[1]):
         print(f"  {g:20s} {100 * share:5.1f}%")
+    print(
+        f"matrix products: {flops / 1e9:.2f} GFLOP per update ({flops / agent_steps / 1e6:.2f} MFLOP per agent-step), "
+        f"at {flops / 1e9 / max(flops_s, 1e-9):.1f} GFLOP/s"
+    )
     print("slowest operators:")
     for name, t in sorted(ops, key=lambda kv: -kv[1])[: a.top]:
         print(f"  {name:40s} {100 * t / total:5.1f}%")
@@ -103,6 +116,9 @@ def main() -> None:
         "agent_steps_per_batch": agent_steps,
         "cpu_s_per_update": round(per_update, 4),
         "shares": {g: round(s, 4) for g, s in shares.items()},
+        "gflop_per_update": round(flops / 1e9, 3),
+        "mflop_per_agent_step": round(flops / agent_steps / 1e6, 3),
+        "matrix_gflop_per_s": round(flops / 1e9 / max(flops_s, 1e-9), 1),
     }
     print(json.dumps(summary))
 

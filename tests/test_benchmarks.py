@@ -294,6 +294,7 @@ def test_update_profile_groups_an_update_s_time_and_ends_with_json() -> None:
     assert summary["agent_steps_per_batch"] > 0 and summary["cpu_s_per_update"] > 0
     assert summary["task"] == "10x10, K=7, bitwise"
     assert abs(sum(summary["shares"].values()) - 1.0) < 1e-3 and summary["shares"]["matrix products"] > 0
+    assert summary["gflop_per_update"] > 0 and summary["mflop_per_agent_step"] > 0
     bad = subprocess.run([*argv[:2], "--updates", "0"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "updates" in bad.stderr.strip().splitlines()[-1]
 
