@@ -170,7 +170,7 @@ def _worker(
 def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
     from tqdm import tqdm
 
-    from bitcomm.learn.learner import PROTOCOL_FORMED, Learner
+    from bitcomm.learn.learner import Learner
 
     saved = prepare(cfg, out, resume)
     torch.manual_seed(cfg.seed)
@@ -243,8 +243,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
             formed.value = _or_unset(learner.senders_wait.start)
             row = prog.add_batch(length, team_return, int(length.sum()) * n, sent_greedy=sent_greedy)
             row.update({"charts/success": float(success.mean()), **stats})
-            if cfg.senders_wait_below:  # the main process watches, not the worker whose stats these are
-                row[PROTOCOL_FORMED] = float(learner.senders_wait.start is not None)
+            row.update(learner.senders_wait.figures())  # the main process watches, not the worker whose stats these are
             finite_or_stop(out, learner, prog.episodes)
             logger.log(row)
             bar.update(min(len(length), max(0, bar.total - bar.n)))  # workers overshoot the budget: the bar stops at it

@@ -31,9 +31,6 @@ from bitcomm.learn.precision import update_precision
 from bitcomm.learn.rollout import Rollout
 from bitcomm.policies.networks import CriticNet, PolicyNet
 
-PROTOCOL_FORMED = "schedule/protocol_formed"
-"""The metrics column that says whether the greedy senders and held words may play (`senders_wait_below`)."""
-
 
 class DistinctObserved(NamedTuple):
     """A message head of its own (`message_reads` `observed`) over a batch: its input features for each distinct
@@ -267,8 +264,8 @@ class Learner:
                     stats.setdefault(k, []).append(v)
         if cfg.move_decay_below:
             stats["schedule/move_scale"] = [self.move_scale]
-        if cfg.senders_wait_below:  # 1 from the update that saw the protocol formed (the a3c trainer sets its own)
-            stats[PROTOCOL_FORMED] = [float(self.senders_wait.start is not None)]
+        for k, v in self.senders_wait.figures().items():  # (the a3c trainer logs its main process's watch instead)
+            stats[k] = [v]
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
     def advantages(self, ro: Rollout, features: BatchFeatures | None = None) -> Advantages:

@@ -54,6 +54,10 @@ class LevelWatch:
             self.start = progress
 
 
+PROTOCOL_FORMED = "schedule/protocol_formed"
+"""The metrics column that says whether the greedy senders and held words may play (`senders_wait_below`)."""
+
+
 class SendersWait(LevelWatch):
     """When the greedy senders and held words may start (`TrainConfig.senders_wait_below`): at the later of their
     own `_from` and the progress where the protocol formed."""
@@ -61,3 +65,7 @@ class SendersWait(LevelWatch):
     @classmethod
     def from_config(cls, cfg: TrainConfig) -> SendersWait:
         return cls.at_multiple(cfg.senders_wait_below, cfg, "senders-wait-below")
+
+    def figures(self) -> dict[str, float]:
+        """The log's `PROTOCOL_FORMED` column where the watch waits: 1 from the update that saw the protocol formed."""
+        return {PROTOCOL_FORMED: float(self.start is not None)} if self.waits else {}
