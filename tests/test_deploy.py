@@ -139,3 +139,29 @@ def test_agents_end_when_the_world_dies() -> None:
     finally:
         if world.poll() is None:
             world.kill()
+
+
+def test_threads_flag_sets_torchs_threads_and_agents_get_one(
+    threads, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--threads N` (as on eval) sets this process's torch threads (the simulator's comparison); each agent
+    process starts with OMP_NUM_THREADS=1 whatever the caller's environment says, which is left as it was; 0 is one
+    error line."""
+    from bitcomm.cli import main
+
+    agent_threads: list[str | None] = []
+    real_popen = subprocess.Popen
+
+    def recording_popen(*args: object, **kwargs: object) -> subprocess.Popen[bytes]:
+        env = kwargs.get("env") or os.environ
+        agent_threads.append(env.get("OMP_NUM_THREADS"))  # type: ignore[attr-defined]
+        return real_popen(*args, **kwargs)  # type: ignore[call-overload,no-any-return]
+
+    monkeypatch.setattr(world_module.subprocess, "Popen", recording_popen)
+    monkeypatch.setenv("OMP_NUM_THREADS", "4")
+    argv = ["deploy", "--policy", "oracle", "--size", "4", "--bits", "4", "--episodes", "3", "--json"]
+    assert main([*argv, "--timeout", "60", "--threads", str(threads.want)]) == 0
+    assert threads.calls == [threads.want]
+    assert agent_threads == ["1", "1"] and os.environ["OMP_NUM_THREADS"] == "4"
+    assert json.loads(capsys.readouterr().out)["episodes"] == 3
+    assert threads.zero_is_one_line("deploy", capsys)

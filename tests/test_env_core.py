@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bitcomm.config import EnvConfig
+from bitcomm.config import ChannelConfig, EnvConfig
 from bitcomm.envs.core import GoalExchangeCore
+from bitcomm.errors import ConfigError
 
 STAY, UP, DOWN, LEFT, RIGHT = range(5)
 
@@ -209,6 +210,33 @@ def test_observes_map() -> None:
             seen = np.flatnonzero(core.obs[b, i, 1])
             np.testing.assert_array_equal(seen, [core.goal[b, j]])
     assert_planes_match(core)
+
+
+@pytest.mark.parametrize(
+    ("make", "names"),
+    [
+        (lambda: EnvConfig(size=True), "size=True"),
+        (lambda: EnvConfig(act_fail_prob=True), "act_fail_prob=True"),
+        (lambda: EnvConfig(observes=(True, False)), "observes"),
+        (lambda: ChannelConfig(bits=True), "bits=True"),
+        (lambda: ChannelConfig(flip_prob=np.bool_(True)), "flip_prob"),
+        (lambda: ChannelConfig(recipients=((1.7,), (0,))), "recipients"),
+    ],
+)
+def test_a_bool_or_a_fraction_is_not_a_count_or_an_agent(make, names: str) -> None:
+    """True is an int to Python and 1.7 truncates to one: the task's configs refuse both, in one line."""
+    with pytest.raises(ConfigError, match=f"invalid {names}"):
+        make()
+
+
+def test_numpy_numbers_are_taken_and_stored_as_python_ones() -> None:
+    """A config built from numpy values is the config of the same Python values (and JSON as it is)."""
+    env = EnvConfig(size=np.int64(4), max_steps=np.int32(20), act_fail_prob=np.float32(0.5), observes=np.array([1, 0]))
+    channel = ChannelConfig(bits=np.int64(4), delay=np.int8(2), drop_prob=np.float64(0.25))
+    assert env == EnvConfig(size=4, max_steps=20, act_fail_prob=0.5, observes=(1, 0))
+    assert channel == ChannelConfig(bits=4, delay=2, drop_prob=0.25)
+    assert {type(v) for v in (env.size, env.max_steps, channel.bits, channel.delay)} == {int}
+    assert {type(v) for v in (env.act_fail_prob, channel.drop_prob)} == {float}
 
 
 # ---------------------------------------------------------------- actuation noise

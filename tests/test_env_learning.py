@@ -7,6 +7,7 @@ acting on it one step later: only the channel can carry it.
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 from typing import Any
 
@@ -270,6 +271,7 @@ def test_resume_gives_the_uninterrupted_run(tmp_path: Path) -> None:
         (["--env", SPEC, "--goal-coef", "1"], "not used with --env"),
         (["--env", SPEC, "--size", "5"], "a grid option, not used with --env"),
         (["--env", SPEC, "--agents", "3"], "a grid option, not used with --env"),
+        (["--env", SPEC, "--recipe", "supervised"], "not used with --env"),
     ],
 )
 def test_cli_errors_are_one_line(
@@ -287,7 +289,12 @@ def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: p
     assert main(["eval", out, "--episodes", "20", "--drop-prob", "1", "--json"]) == 0
     assert '"mean_team_return"' in capsys.readouterr().out
     assert main(["eval", out, "--size", "5"]) == 2  # a grid flag on a wrapped-env run
-    assert main(["train", "--resume", "--out", out, "--episodes", "16", "--quiet", "--eval-episodes", "0"]) == 0
+    for changed in (["--bits", "3"], ["--hidden", "8"], ["--size", "5"], ["--lr", "0.5"]):  # what it is: one line
+        assert main(["train", "--resume", "--out", out, *changed, "--episodes", "16", "--quiet"]) == 2
+        assert f"invalid {changed[0][2:]}=" in capsys.readouterr().err
+    same = ["--bits", "2", "--hidden", "16", "--keep-checkpoints", "1"]  # what it was, and how often it saves
+    assert main(["train", "--resume", "--out", out, *same, "--episodes", "16", "--quiet", "--eval-episodes", "0"]) == 0
+    assert json.loads((Path(out) / "config.json").read_text())["keep_checkpoints"] == 1
     checkpoint = str(Path(out) / "checkpoints" / "ckpt_000000016.safetensors")
     assert main(["eval", checkpoint, "--episodes", "10"]) == 0
     assert "10 episodes, mean team return" in capsys.readouterr().out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import warnings
 from typing import Any
 
@@ -72,6 +73,36 @@ def test_bad_values_raise_config_error() -> None:
     for kwargs in bad:
         with pytest.raises(ConfigError):
             goal_exchange_v0.parallel_env(**kwargs)
+
+
+def test_numpy_numbers_are_taken_wherever_python_ones_are() -> None:
+    """`size=np.int64(4)` was refused ("must be an integer"); the task then holds plain Python numbers."""
+    env = goal_exchange_v0.parallel_env(
+        size=np.int64(4),
+        n_agents=np.int32(3),
+        max_steps=np.uint16(20),
+        observes=np.array([1, 2, 0]),
+        act_fail_prob=np.float32(0.5),
+        act_delay=np.int8(1),
+        bits=np.int64(5),
+        recipients=np.array([[1], [2], [0]]),
+        delay=np.int64(2),
+        flip_prob=np.int64(0),
+        drop_prob=np.float64(0.25),
+    )
+    plain = goal_exchange_v0.parallel_env(
+        size=4, n_agents=3, max_steps=20, observes=[1, 2, 0], act_fail_prob=0.5, act_delay=1, bits=5,
+        recipients=[[1], [2], [0]], delay=2, flip_prob=0, drop_prob=0.25,
+    )  # fmt: skip
+    assert env.task == plain.task
+    assert TaskConfig.from_dict(json.loads(json.dumps(env.task.to_dict()))) == env.task  # plain numbers: JSON
+    assert type(env.task.env.size) is int and type(env.task.channel.bits) is int
+    with pytest.raises(ConfigError, match=r"invalid size=True: must be an integer"):
+        goal_exchange_v0.parallel_env(size=True)
+    with pytest.raises(ConfigError, match=r"invalid size=np.int64\(1\): must be an integer in \[2, 1024\]"):
+        goal_exchange_v0.parallel_env(size=np.int64(1))
+    with pytest.raises(ConfigError, match=r"invalid size=np.float64\(4.0\)"):
+        goal_exchange_v0.parallel_env(size=np.float64(4.0))
 
 
 def observation_of(obs: dict[str, dict[str, np.ndarray]], agents: list[str], t: int) -> Observation:
@@ -163,6 +194,83 @@ def test_bad_actions_are_refused() -> None:
         env.step({"agent_0": good, "agent_1": {"move": 5, "message": np.zeros(7)}})
     with pytest.raises(ValueError, match="message"):
         env.step({"agent_0": good, "agent_1": {"move": 0, "message": np.zeros(6)}})
+
+
+def one_line_refusal(env: Any, actions: Any) -> str:
+    """The ConfigError `env.step(actions)` raises, checked to be one line; the episode has not moved on."""
+    state = env.state()
+    with pytest.raises(ConfigError) as err:
+        env.step(actions)
+    message = str(err.value)
+    assert message.startswith("invalid ") and "\n" not in message, message
+    np.testing.assert_array_equal(env.state(), state)
+    assert env.agents == env.possible_agents
+    return message
+
+
+@pytest.mark.parametrize(
+    ("move", "shown"),
+    [
+        (2.5, "2.5"),  # was truncated to 2
+        (2.0, "2.0"),  # a float, even a whole one: Discrete(5) does not hold it either
+        (np.float64(1.0), "np.float64(1.0)"),
+        (True, "True"),  # was move 1
+        (np.bool_(False), "np.False_"),
+        (np.array(True), "array(True)"),
+        (np.array([2]), "array([2])"),
+        ("2", "'2'"),
+        (-1, "-1"),
+        (np.int64(5), "np.int64(5)"),
+        (None, "None"),
+    ],
+)
+def test_a_move_must_be_an_integer_in_range(move: Any, shown: str) -> None:
+    env = goal_exchange_v0.parallel_env()
+    env.reset(seed=0)
+    good = {"move": 0, "message": np.zeros(7, np.int8)}
+    message = one_line_refusal(env, {"agent_0": good, "agent_1": {"move": move, "message": np.zeros(7, np.int8)}})
+    assert message == f"invalid actions['agent_1']['move']={shown}: must be an integer in [0, 5)"
+
+
+def test_actions_for_unknown_agents_and_malformed_actions_are_refused() -> None:
+    env = goal_exchange_v0.parallel_env(bits=30)
+    env.reset(seed=0)
+    good = {"move": 0, "message": np.zeros(30, np.int8)}
+    both = {"agent_0": good, "agent_1": good}
+    # an action for an agent that is not live (was ignored), named with the live agents
+    message = one_line_refusal(env, {**both, "agent_9": good})
+    assert message == "invalid agent='agent_9': actions are for live agents only: ['agent_0', 'agent_1']"
+    assert "invalid agent=0" in one_line_refusal(env, {**both, 0: good})
+    # an action dict with a key other than 'move' and 'message' (was ignored), or without one of them
+    message = one_line_refusal(env, {**both, "agent_0": {**good, "speak": 1}})
+    assert message.startswith("invalid actions['agent_0']: has the keys 'message', 'move', 'speak';")
+    assert "has the keys 'move';" in one_line_refusal(env, {**both, "agent_1": {"move": 0}})
+    assert "actions['agent_1']=3: must be a dict" in one_line_refusal(env, {**both, "agent_1": 3})
+    assert "invalid actions=[" in one_line_refusal(env, [good, good])
+    # a long message keeps its repr on one line
+    message = one_line_refusal(env, {**both, "agent_1": {"move": 0, "message": np.full(30, 2)}})
+    assert message.startswith("invalid actions['agent_1']['message']=array([2, 2,") and "must be 30 bits" in message
+    # a missing live agent is still a KeyError, as before
+    with pytest.raises(KeyError, match="agent_1"):
+        env.step({"agent_0": good})
+
+
+def test_every_action_the_action_space_holds_is_taken() -> None:
+    """What `action_space(agent).sample()` gives, and the other integers `Discrete(5)` holds (Python and numpy
+    integers, 0-d integer arrays) with messages `MultiBinary(K)` holds."""
+    env = goal_exchange_v0.parallel_env(max_steps=50)
+    env.reset(seed=0)
+    space = env.action_space("agent_0")
+    moves = [3, np.int64(4), np.uint8(1), np.int32(2), np.array(3), np.array(0, np.uint8)]
+    messages = [np.ones(7, np.int8), [0, 1, 0, 1, 0, 1, 0], np.zeros(7, bool), np.ones(7)]
+    for move, message in zip(moves, messages * 2, strict=False):
+        action = {"move": move, "message": message}
+        assert space.contains({"move": move, "message": np.asarray(message)})
+        env.step({"agent_0": action, "agent_1": env.action_space("agent_1").sample()})
+    for _ in range(20):
+        if not env.agents:
+            env.reset()
+        env.step({a: env.action_space(a).sample() for a in env.agents})
 
 
 def test_render_ansi() -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -215,6 +216,7 @@ def test_an_actor_that_cannot_start_stops_the_run_with_its_cause(cluster: str) -
         (["--staleness", "2"], "staleness"),  # asynchrony is Ray's
         (["--address", "127.0.0.1:6379"], "address"),  # an address without --backend ray
         (["--backend", "ray", "--address", "nonsense"], "address"),
+        (["--backend", "ray", "--address", "nohost:notaport"], "address"),
         (["--backend", "ray", "--mode", "a3c"], "mode"),
     ],
 )
@@ -228,3 +230,65 @@ def test_bad_flags_get_one_line(
     lines = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(lines) == 1, lines
     assert flag in lines[0] and "invalid" in lines[0] and "Traceback" not in lines[0]
+
+
+def closed_port() -> int:
+    """A local TCP port where nothing listens (bound, noted, closed)."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@pytest.mark.parametrize("scheme", ["", "ray://"])
+def test_an_address_where_nothing_listens_gets_one_line_quickly(
+    scheme: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ray itself retried such an address for many minutes ("Failed to connect to GCS ... within 5 seconds"
+    every ~40 s): the run stops at once, with one line, before Ray is asked (even with a Ray started here)."""
+
+    def no_init(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("ray.init was called")
+
+    monkeypatch.setattr(ray, "init", no_init)
+    address = f"{scheme}127.0.0.1:{closed_port()}"
+    out = tmp_path / "run"
+    argv = ["train", *TINY, "--episodes", "128", "--backend", "ray", "--workers", "1", "--threads", "1"]
+    t0 = time.monotonic()
+    code = main([*argv, "--address", address, "--out", str(out)])
+    assert time.monotonic() - t0 < 20
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert lines[0].startswith(f"bitcomm train: error: invalid address='{address}': cannot reach a Ray cluster there (")
+    assert "Connection refused" in lines[0]
+    assert not out.exists()  # the address is checked before the run folder is made
+
+
+@pytest.mark.parametrize(
+    "address", ["nohost:notaport", "ray://", "host", ":6379", "host:0", "host:65536", "ray://a/b:6379", 6379]
+)
+def test_a_malformed_address_gets_one_line(address: Any, tmp_path: Path) -> None:
+    from bitcomm.errors import ConfigError
+    from bitcomm.learn.ray_backend import check_address
+    from bitcomm.learn.run import train
+
+    allowed = "must be auto, HOST:PORT or ray://HOST:PORT"
+    with pytest.raises(ConfigError) as err:
+        check_address(address)
+    assert str(err.value) == f"invalid address={address!r}: {allowed}"
+    if address == "nohost:notaport":  # through the Python API, without starting Ray
+        with pytest.raises(ConfigError, match=f"^invalid address='nohost:notaport': {allowed}$"):
+            train(tiny_config(workers=1), tmp_path / "run", progress=False, address=address)
+
+
+def test_an_address_check_passes_where_something_listens_and_for_auto() -> None:
+    from bitcomm.errors import ConfigError
+    from bitcomm.learn.ray_backend import check_address
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}", f"localhost:{port}", None, "auto"):
+            check_address(address)
+    with pytest.raises(ConfigError, match=r"cannot reach a Ray cluster there \(.*nohost\.invalid:6379"):
+        check_address("nohost.invalid:6379")  # a name that does not resolve

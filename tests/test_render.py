@@ -83,3 +83,28 @@ def test_run_without_controller_is_one_error_line(tmp_path: Path, capsys: pytest
     assert main(["render", str(tmp_path / "no-such-run"), "--out", str(tmp_path / "x.gif")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and LEARNED_UNAVAILABLE in err
+
+
+def test_threads_flag_sets_torchs_threads_for_a_trained_run(tmp_path: Path, threads, capsys) -> None:
+    """`--threads N` (as on eval): a trained RUN's episode is played on N torch threads; the oracle never loads
+    torch, so it is not set there; 0 is one error line."""
+    import torch
+
+    import bitcomm.studies.render as study
+    from bitcomm.checkpoint import save_checkpoint
+    from bitcomm.cli import main
+    from bitcomm.learn.config import make_train_config
+    from bitcomm.policies.networks import PolicyNet
+
+    cfg = make_train_config("reinforced", TaskConfig(EnvConfig(size=4, max_steps=6), ChannelConfig(bits=4)))
+    torch.manual_seed(0)
+    run = tmp_path / "run"  # one checkpoint of an untrained policy, written by the trainer's own writer
+    save_checkpoint(run, cfg.to_dict(), {"policy": PolicyNet(cfg.task, cfg.model).state_dict()}, 16, 1, state={})
+    threads.watch(study, "record_episode")
+    want = threads.want
+    assert main(["render", str(run), "--threads", str(want), "--out", str(tmp_path / "run.gif")]) == 0
+    assert threads.calls == threads.seen == [want]
+    oracle = ["render", "--policy", "oracle", "--size", "4", "--bits", "4", "--threads", str(want)]
+    assert main([*oracle, "--out", str(tmp_path / "oracle.gif")]) == 0
+    assert threads.calls == [want] and len(threads.seen) == 2
+    assert threads.zero_is_one_line("render", capsys)

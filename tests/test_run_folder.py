@@ -99,6 +99,75 @@ def leftovers(run: Path) -> list[str]:
     return tmp + unpaired
 
 
+# ---------------------------------------------------------------------------------------------- starts
+@pytest.mark.parametrize("mine", ["config.json", "metrics.csv", "learning_curve.png"])
+def test_a_fresh_run_leaves_alone_a_folder_whose_files_are_not_a_runs(mine: str, tmp_path: Path, capsys) -> None:
+    """A fresh run overwrites config.json, metrics.csv and the curves: in a folder that is not a run's, one line and
+    nothing written (not even the lock)."""
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    (folder / mine).write_text("the user's own\n")
+    (folder / "notes.txt").write_text("notes\n")
+    refused(capsys, "train", *QUICK, "--episodes", "16", "--out", str(folder), naming=mine)
+    assert sorted(p.name for p in folder.iterdir()) == sorted([mine, "notes.txt"])
+    assert (folder / mine).read_text() == "the user's own\n"
+
+
+def test_a_run_stopped_before_its_first_checkpoint_is_trained_again_not_resumed(run: Path, capsys) -> None:
+    """Its config.json and metrics.csv are a run's, so a fresh start may replace them; a resume says why it cannot."""
+    shutil.rmtree(run / "checkpoints")
+    line = refused(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64", naming=str(run))
+    assert "before its first checkpoint" in line and "without --resume" in line
+    rc, err = cli(capsys, "train", *QUICK, "--out", str(run), "--episodes", "16")
+    assert rc == 0, err
+    assert checkpoints(run)[-1][0] == 16
+
+
+@pytest.mark.parametrize(
+    "changed",
+    [
+        ["--size", "5"],
+        ["--flip-prob", "0.1"],
+        ["--observes", "0,1"],  # (an agent may not observe itself: still one line)
+        ["--lr", "0.1"],
+        ["--mode", "a3c"],
+        ["--estimator", "standard"],
+        ["--messages", "onehot"],
+        ["--recipe", "paper"],
+        ["--seed", "3"],
+    ],
+)
+def test_a_resume_refuses_a_flag_that_would_change_the_run(changed: list[str], run: Path, capsys) -> None:
+    """A resume continues the run as it started: a flag typed with another value is one line, not ignored."""
+    before = (run / "checkpoints" / "latest.json").read_text()
+    refused(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64", *changed, naming=changed[0][2:])
+    assert (run / "checkpoints" / "latest.json").read_text() == before
+
+
+def test_a_resume_takes_the_budget_and_how_often_it_saves_and_the_flags_it_was_trained_with(run: Path, capsys) -> None:
+    """The flags the run was started with, typed again (the ring typed as its map), are accepted."""
+    same = ["--estimator", "improved", "--messages", "bitwise", "--recipe", "reinforced", "--seed", "0"]
+    same += ["--observes", "1,0", "--recipients", "1;0", "--keep-checkpoints", "1"]
+    rc, err = cli(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64", *same)
+    assert rc == 0, err
+    assert json.loads((run / "config.json").read_text())["keep_checkpoints"] == 1
+    kept = [e for e, _ in checkpoints(run)]
+    assert kept[-1] == 64 and len(kept) <= 2  # the last one and the best
+
+
+def test_eval_refuses_a_task_whose_agents_hear_another_number_of_senders() -> None:
+    """The senders an agent hears are its network's message inputs: another count is one line naming the flag."""
+    import argparse
+
+    from bitcomm.policies.source import resolve_task
+
+    base = TaskConfig(EnvConfig(size=4, n_agents=3), ChannelConfig(bits=4, recipients=((1, 2), (0, 2), (0, 1))))
+    args = argparse.Namespace(recipients=((1,), (2,), (0,)))
+    with pytest.raises(ConfigError, match=r"invalid recipients=.*trained to hear 2 sender\(s\) per agent"):
+        resolve_task(args, base, strict=True)
+    assert resolve_task(args, base).slots == 1  # a resume or a command that does not load the network may
+
+
 # ---------------------------------------------------------------------------------------------- lock
 def test_a_second_writer_is_refused_with_the_holders_pid(run: Path, tmp_path: Path, capsys) -> None:
     fresh = tmp_path / "fresh"

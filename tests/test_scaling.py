@@ -110,3 +110,35 @@ def test_cli_defaults_are_the_config_defaults() -> None:
         assert scaling_config(parser.parse_args(["scaling", "--recipe", recipe])).recipe == recipe
     for name in ESTIMATORS:
         assert scaling_config(parser.parse_args(["scaling", "--estimator", name])).estimator == name
+
+
+def test_threads_flag_sets_torchs_threads_and_is_recorded(
+    tmp_path: Path, threads, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--threads N`: the updates are timed on N torch threads and scaling.md says so (the update times depend
+    on it: 2923.8 ms on torch's default threads beside a busy core against 84.7 ms on one); without the flag,
+    OMP_NUM_THREADS when set (torch's own count, left alone); 0 is one error line."""
+    import bitcomm.studies.scaling as study
+
+    threads.watch(study, "run_scaling")
+    want = threads.want
+    argv = ["scaling", "--sizes", "2", "--repeats", "1", "--batch-episodes", "1", "--batch-steps", "2", "--json"]
+    assert main([*argv, "--threads", str(want), "--out", str(tmp_path / "a")]) == 0
+    assert threads.calls == threads.seen == [want]
+    last = (tmp_path / "a" / "scaling.md").read_text().splitlines()[-1]
+    assert last.startswith(f"Updates timed on {want} torch thread") and last.endswith("(--threads).")
+    monkeypatch.setenv("OMP_NUM_THREADS", str(want))  # torch read it at start-up: left alone
+    assert main([*argv, "--out", str(tmp_path / "b")]) == 0
+    assert threads.calls == [want] and threads.seen == [want, want]
+    last = (tmp_path / "b" / "scaling.md").read_text().splitlines()[-1]
+    assert last.startswith(f"Updates timed on {want} torch thread") and last.endswith("(OMP_NUM_THREADS).")
+    assert threads.zero_is_one_line("scaling", capsys)
+
+
+def test_repeated_sizes_are_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`--sizes 4,4` measured 4x4 twice and printed its rows twice; now refused, naming the repeated side."""
+    for text in ("4,4", "4,6,04"):
+        assert main(["scaling", "--sizes", text, "--out", str(tmp_path / "sc")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "--sizes" in err and "grid side 4 is repeated" in err, err
+    assert not (tmp_path / "sc").exists()

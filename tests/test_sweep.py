@@ -52,3 +52,14 @@ def test_cli_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert "wrote" in capsys.readouterr().out
     assert main(["sweep", "--param", "speed=1", "--out", str(out)]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_threads_flag_sets_torchs_threads(tmp_path: Path, threads, capsys: pytest.CaptureFixture[str]) -> None:
+    """`--threads N` (as on eval): the points are played on N torch threads; 0 is one error line."""
+    from bitcomm.commands import sweep as command
+
+    threads.watch(command, "run_sweep")
+    argv = ["sweep", "--policy", "oracle", "--size", "4", "--bits", "4", "--episodes", "10", "--param", "act_delay=0"]
+    assert main([*argv, "--threads", str(threads.want), "--out", str(tmp_path / "sw"), "--json"]) == 0
+    assert threads.seen == [threads.want]
+    assert threads.zero_is_one_line("sweep", capsys)

@@ -253,6 +253,9 @@ def test_commands_whose_time_is_torchs_take_threads(
         ["eval", "{missing}"],
         ["eval", "{corrupt}"],
         ["eval", "{corrupt_run}"],
+        ["train", "--workers", "3"],  # sync mode has no workers
+        ["train", "--conv-stride", "1"],  # the default recipe's encoder has no convolutions
+        ["train", "--foo", "1"],  # an unknown flag, named with its command
     ],
 )
 def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

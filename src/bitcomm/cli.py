@@ -43,9 +43,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args, unknown = parser.parse_known_args(argv)
     except SystemExit as exit_:  # a usage error (2, its line printed) or --help (0): a status, as run() returns
         return exit_.code if isinstance(exit_.code, int) else 2
+    if unknown:  # named with its command, as every other error (argparse's own line names only `bitcomm`)
+        print(f"bitcomm {args.command}: error: unrecognized arguments: {' '.join(unknown)}", file=sys.stderr)
+        return 2
     try:
         return int(args.run(args) or 0)
     except ConfigError as err:

@@ -7,12 +7,13 @@ bad value fails early with one line that names it (see `bitcomm.errors`).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
-from bitcomm.errors import bad_value
+from bitcomm.errors import bad_value, is_number
 
 MAX_SEED = 2**32 - 1
 """Seeds feed numpy's SeedSequence and torch.manual_seed; 32 bits is what both take everywhere."""
@@ -28,15 +29,27 @@ MAX_STEPS = 100_000
 """Episode length cap (`max_steps`): beyond it a random policy's evaluation would run for days."""
 
 
-def _check_probability(name: str, value: float) -> None:
-    if not (isinstance(value, (int, float)) and 0.0 <= float(value) <= 1.0):
+def _is_integer(value: object) -> bool:
+    """A Python or numpy integer; not a bool (True is an int to Python, never a count here)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+
+def _probability(config: object, field: str, name: str) -> None:
+    """One error line unless `config.field` is a number in [0, 1] (a numpy one is taken; a bool is not); stored
+    as a Python float, so a config stays JSON."""
+    value = getattr(config, field)
+    if not (is_number(value) and not isinstance(value, np.bool_) and 0.0 <= float(value) <= 1.0):  # type: ignore[arg-type]
         raise bad_value(name, value, "must be a probability in [0, 1]")
+    object.__setattr__(config, field, float(value))  # type: ignore[arg-type]
 
 
-def _check_count(name: str, value: object, least: int, most: int, why: str) -> None:
-    """One error line unless `value` is an int in [least, most] (a bool is not); `why` explains the bounds."""
-    if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
+def _count(config: object, field: str, name: str, least: int, most: int, why: str) -> None:
+    """One error line unless `config.field` is an integer in [least, most] (a numpy one is taken; a bool is not);
+    stored as a Python int. `why` explains the bounds."""
+    value = getattr(config, field)
+    if not _is_integer(value) or not least <= value <= most:
         raise bad_value(name, value, f"must be an integer in [{least}, {most}] ({why})")
+    object.__setattr__(config, field, int(value))
 
 
 def recipient_matrix(recipients: tuple[tuple[int, ...], ...], n_agents: int) -> np.ndarray:
@@ -79,17 +92,17 @@ class EnvConfig:
     """Actuation noise: moves take effect this many steps after they are chosen (stay before that)."""
 
     def __post_init__(self) -> None:
-        _check_count("size", self.size, 2, MAX_SIZE, "cells a side")
-        _check_count("agents", self.n_agents, 2, MAX_AGENTS, "at least 2 agents are needed")
-        _check_count("max_steps", self.max_steps, 1, MAX_STEPS, "steps before an episode is truncated")
-        _check_probability("act_fail_prob", self.act_fail_prob)
-        _check_count("act_delay", self.act_delay, 0, self.max_steps - 1, "a move must take effect within max_steps")
+        _count(self, "size", "size", 2, MAX_SIZE, "cells a side")
+        _count(self, "n_agents", "agents", 2, MAX_AGENTS, "at least 2 agents are needed")
+        _count(self, "max_steps", "max_steps", 1, MAX_STEPS, "steps before an episode is truncated")
+        _probability(self, "act_fail_prob", "act_fail_prob")
+        _count(self, "act_delay", "act_delay", 0, self.max_steps - 1, "a move must take effect within max_steps")
         if self.observes is not None:
             obs = tuple(self.observes)
             if len(obs) != self.n_agents:
                 raise bad_value("observes", obs, f"needs one entry per agent ({self.n_agents})")
             for i, j in enumerate(obs):
-                if not isinstance(j, (int, np.integer)) or not 0 <= j < self.n_agents:
+                if not _is_integer(j) or not 0 <= j < self.n_agents:
                     raise bad_value("observes", obs, f"entries must be agents 0..{self.n_agents - 1}")
                 if i == j:
                     raise bad_value(
@@ -125,13 +138,15 @@ class ChannelConfig:
     """Each message is lost with this probability (received as all zeros, by every recipient)."""
 
     def __post_init__(self) -> None:
-        if not isinstance(self.bits, int) or not 1 <= self.bits <= 30:
-            raise bad_value("bits", self.bits, "must be an integer in [1, 30]")
-        _check_count("delay", self.delay, 1, MAX_STEPS, "a message arrives one step later at the earliest")
-        _check_probability("flip_prob", self.flip_prob)
-        _check_probability("drop_prob", self.drop_prob)
+        _count(self, "bits", "bits", 1, 30, "bits a message carries")
+        _count(self, "delay", "delay", 1, MAX_STEPS, "a message arrives one step later at the earliest")
+        _probability(self, "flip_prob", "flip_prob")
+        _probability(self, "drop_prob", "drop_prob")
         if self.recipients is not None:
-            object.__setattr__(self, "recipients", tuple(tuple(int(x) for x in r) for r in self.recipients))
+            rows = tuple(tuple(r) for r in self.recipients)
+            if not all(_is_integer(x) for r in rows for x in r):
+                raise bad_value("recipients", rows, "entries must be agent indices (integers)")
+            object.__setattr__(self, "recipients", tuple(tuple(int(x) for x in r) for r in rows))
 
     @property
     def messages(self) -> int:

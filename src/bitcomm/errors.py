@@ -9,8 +9,9 @@ class ConfigError(ValueError):
 
 
 def bad_value(name: str, value: object, allowed: str) -> ConfigError:
-    """Build the one-line error every entry point uses: parameter, value, what is allowed."""
-    return ConfigError(f"invalid {name}={value!r}: {allowed}")
+    """Build the one-line error every entry point uses: parameter, value, what is allowed (a value whose repr
+    spans lines, a long array's, is put on one)."""
+    return ConfigError(f"invalid {name}={' '.join(repr(value).split())}: {allowed}")
 
 
 def check_int(name: str, value: object, least: int) -> None:

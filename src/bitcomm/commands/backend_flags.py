@@ -3,7 +3,9 @@
 `--backend`, `--workers` and `--staleness` are learning options (fields of TrainConfig, so
 `bitcomm.commands.learning_flags` makes their flags); they say how a run is executed, not what it learns,
 so `--resume` takes them from the command line: a run resumes locally unless `--backend ray` is given
-again, whatever backend it started on. Torch-free, like every parser.
+again, whatever backend it started on. So do the budget and how often it saves (`RESUME_MAY_CHANGE`); any
+other flag typed with `--resume` must say what the run already is (`check_resume_flags`). Torch-free, like every
+parser.
 """
 
 from __future__ import annotations
@@ -11,7 +13,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import re
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from bitcomm.errors import bad_value
 
@@ -28,6 +32,33 @@ def ray_address(text: str) -> str:
     if text.strip() == "auto" or (match and 1 <= int(match.group(2)) <= 65535):
         return text.strip()
     raise argparse.ArgumentTypeError(f"invalid value {text!r}: must be auto, HOST:PORT or ray://HOST:PORT")
+
+
+RESUME_MAY_CHANGE = frozenset(
+    {"episodes", "backend", "workers", "staleness", "env_workers", "checkpoint_seconds", "keep_checkpoints"}
+)
+"""The options a resume takes from its command line: the budget, where it runs and how often it saves, none of which
+changes what it learns."""
+
+
+def check_resume_flags(out: Path, typed: dict[str, Any], recorded: Callable[[str], Any]) -> None:
+    """A resume continues a run as it started: one line for a flag typed with another value than the run's
+    (`recorded(name)`; `typed` by option name), rather than a run that silently ignores it."""
+    for name, value in typed.items():
+        was = recorded(name)
+        if name not in RESUME_MAY_CHANGE and _plain(value) != _plain(was):
+            flag = name.replace("_", "-")
+            raise bad_value(
+                flag,
+                value,
+                f"the run in {str(out)!r} was trained with {flag}={was}, and --resume continues it as it started "
+                "(only the budget, where it runs and how often it saves may change)",
+            )
+
+
+def _plain(value: Any) -> Any:
+    """A value as config.json gives it back (a tuple as a list), so a typed value and a recorded one compare."""
+    return [_plain(v) for v in value] if isinstance(value, (list, tuple)) else value
 
 
 def add_backend_flags(parser: argparse.ArgumentParser) -> None:

@@ -9,7 +9,16 @@ import sys
 from typing import TYPE_CHECKING
 
 from bitcomm.commands.common import add_task_flags
-from bitcomm.commands.flags import MAX_DEADLINE_MS, MAX_SECONDS, SEED, check_eval, integer, number
+from bitcomm.commands.flags import (
+    MAX_DEADLINE_MS,
+    MAX_SECONDS,
+    SEED,
+    add_threads_flag,
+    check_eval,
+    integer,
+    number,
+    use_threads,
+)
 from bitcomm.policies.source import add_policy_flags, source_from_args
 
 if TYPE_CHECKING:
@@ -48,6 +57,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="bound on the whole run, seconds (default %(default)s)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object (episode lines go to stderr)")
+    add_threads_flag(
+        p,
+        "; this process's, which builds the policy and plays the simulator's comparison: each agent process runs "
+        "on 1 thread whatever this says (it acts on one observation at a time, and the agents already take a core "
+        "each)",
+    )
     add_task_flags(p)
     add_policy_flags(p, onnx=True)
     p.set_defaults(run=run)
@@ -70,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     source = source_from_args(args)
     task = source.task_from_args(args)
     check_eval(task, episodes)
+    use_threads(args)
     source.build(task)  # a policy that cannot be built fails here, with one line, before any process starts
     log = sys.stderr if args.json else sys.stdout
 

@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from bitcomm.commands.backend_flags import check_resume_flags
 from bitcomm.commands.env_flags import ENV_ONLY
 from bitcomm.commands.learning_flags import learning_overrides
 from bitcomm.errors import bad_value
@@ -77,25 +78,51 @@ def env_config_from_args(args: argparse.Namespace) -> EnvTrainConfig:
                           **env_overrides(args))  # fmt: skip
 
 
+def resumed_env_config(args: argparse.Namespace, out: Path) -> EnvTrainConfig:
+    """The config of the wrapped-env run in `out`, with the budget, the env's workers and how often it saves as typed
+    now; one line for any other flag typed with a value the run was not trained with."""
+    from bitcomm.learn.env_config import EnvTrainConfig
+    from bitcomm.learn.run_folder import resume_config
+    from bitcomm.policies.source import given_task_flags
+
+    cfg = resume_config(out, EnvTrainConfig.from_dict, args.episodes)
+    typed = {**given_task_flags(args), **env_overrides(args)}  # the grid's task flags are refused below, by name
+    for name in ("env", "env_kwargs", "topology", "fixed_actions", "obs_norm", "env_workers", "estimator", "messages"):
+        if getattr(args, name, None) is not None:
+            typed[name] = getattr(args, name)
+    if getattr(args, "seed", None) is not None:
+        typed["seed"] = args.seed
+    channel = {f.name for f in dataclasses.fields(cfg.channel)}
+
+    def recorded(name: str) -> Any:
+        if name in GRID_ONLY:
+            raise bad_value(name.replace("_", "-"), typed[name], "a grid option, not used with --env")
+        return getattr(cfg.channel if name in channel else cfg, name)
+
+    check_resume_flags(out, typed, recorded)
+    now = ("env_workers", "checkpoint_seconds", "keep_checkpoints")  # where the copies are stepped, how often it saves
+    return dataclasses.replace(cfg, **{k: typed[k] for k in now if k in typed})
+
+
 def train(args: argparse.Namespace) -> int:
     """Train on the env of `--env` (or resume such a run), on the torch threads the caller has set."""
-    from bitcomm.learn.env_config import EnvTrainConfig
     from bitcomm.learn.env_eval import evaluate_env
     from bitcomm.learn.env_run import train_env
-    from bitcomm.learn.run_folder import resume_config
+    from bitcomm.learn.run_folder import check_start
 
     if getattr(args, "address", None) is not None:  # the Ray backend trains the grid only
         raise bad_value("address", args.address, "not used with --env")
+    if getattr(args, "recipe", None) is not None:
+        raise bad_value("recipe", args.recipe, "not used with --env (its learning options are flags of their own)")
     if args.resume:
         if args.out is None:
             raise bad_value("resume", True, "give the run folder with --out")
-        cfg = resume_config(args.out, EnvTrainConfig.from_dict, args.episodes)
-        if args.env_workers is not None:  # where the copies are stepped changes no episode: a resume may change it
-            cfg = dataclasses.replace(cfg, env_workers=args.env_workers)
+        cfg = resumed_env_config(args, args.out)
     else:
         cfg = env_config_from_args(args)
     module = cfg.env.partition(":")[0].rpartition(".")[2]
     out = args.out or Path("runs") / f"env-{module}-{cfg.estimator}-{cfg.messages}-s{cfg.seed}"
+    check_start(out, args.resume)  # before a line is printed
     print(f"run folder: {out}{' (resumed)' if args.resume else ''}; env {cfg.env}", flush=True)
     checkpoint = train_env(cfg, out, resume=args.resume, progress=not args.quiet)
     print(f"checkpoint: {checkpoint}")

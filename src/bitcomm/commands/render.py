@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from bitcomm.commands.common import add_task_flags
-from bitcomm.commands.flags import MAX_FPS, MAX_FRAMES, SEED, gif_file, number, out_dir
+from bitcomm.commands.flags import MAX_FPS, MAX_FRAMES, SEED, add_threads_flag, gif_file, number, out_dir, use_threads
 from bitcomm.errors import bad_value
 from bitcomm.policies.source import add_policy_flags, source_from_args
 
@@ -33,6 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=2.0,
         help="frames per second of the GIF (default %(default)s)",
     )
+    add_threads_flag(p, "; only a trained RUN plays on torch: the oracle and random policies never load it")
     add_task_flags(p)
     add_policy_flags(p)
     p.set_defaults(run=run)
@@ -45,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
     if source.name == "run":
         from bitcomm.learn.env_run import env_run_config
 
+        use_threads(args)
         if env_run_config(args.run_path) is not None:
             return run_env(args)
     task = source.task_from_args(args)

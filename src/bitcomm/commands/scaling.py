@@ -8,7 +8,17 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bitcomm.commands.flags import MAX_BATCH, MAX_REPEATS, MAX_TRAIN_EPISODES, SEED, integer, number, out_dir
+from bitcomm.commands.flags import (
+    MAX_BATCH,
+    MAX_REPEATS,
+    MAX_TRAIN_EPISODES,
+    SEED,
+    add_threads_flag,
+    integer,
+    number,
+    out_dir,
+    use_threads,
+)
 from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
 
 if TYPE_CHECKING:
@@ -23,7 +33,8 @@ MAX_BATCH_STEPS = 1024
 
 
 def sizes(text: str) -> str:
-    """An argparse type: comma-separated grid sides in [2, MAX_SCALING_SIZE] (kept as text for ScalingConfig)."""
+    """An argparse type: comma-separated grid sides in [2, MAX_SCALING_SIZE], each once (kept as text for
+    ScalingConfig); a side given twice would only measure it twice and print its rows twice."""
     allowed = f"must be comma-separated grid sides, each an integer in [2, {MAX_SCALING_SIZE}]"
     try:
         values = [int(x) for x in text.split(",") if x.strip()]
@@ -31,6 +42,9 @@ def sizes(text: str) -> str:
         raise argparse.ArgumentTypeError(f"invalid value {text!r}: {allowed}") from None
     if not values or not all(2 <= v <= MAX_SCALING_SIZE for v in values):
         raise argparse.ArgumentTypeError(f"invalid value {text!r}: {allowed}")
+    repeated = next((v for i, v in enumerate(values) if v in values[:i]), None)
+    if repeated is not None:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: grid side {repeated} is repeated; give each once")
     return text
 
 
@@ -93,6 +107,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--out", type=out_dir, default="scaling", help="folder for scaling.csv/.md/.png/.svg (default %(default)s)"
     )
     p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
+    add_threads_flag(p, "; the update times depend on them, so scaling.md records the count")
     p.set_defaults(run=run)
 
 
@@ -113,15 +128,25 @@ def scaling_config(args: argparse.Namespace) -> ScalingConfig:
     )
 
 
+def threads_note(threads: int, chosen: str) -> str:
+    """The line scaling.md ends with: the torch threads the updates ran on, and what chose them."""
+    return f"\nUpdates timed on {threads} torch thread{'s' if threads != 1 else ''} ({chosen}).\n"
+
+
 def run(args: argparse.Namespace) -> int:
+    import torch
+
     from bitcomm.studies.scaling import markdown_table, plot_curves, plot_scaling, run_scaling, write_csv
 
     scfg = scaling_config(args)
     out = Path(args.out)
+    threads = use_threads(args)
+    chosen = "--threads" if args.threads else "OMP_NUM_THREADS" if threads is None else "the idle cores"
     rows = run_scaling(scfg, out, progress=not args.json)
     csv_path = write_csv(rows, out / "scaling.csv")
     md_path = out / "scaling.md"
-    md_path.write_text(markdown_table(rows, scfg))
+    table = markdown_table(rows, scfg) + threads_note(torch.get_num_threads(), chosen)
+    md_path.write_text(table)
     written = [csv_path, md_path, plot_scaling(rows, out / "scaling.png")]
     curves = plot_curves(out, rows)
     if curves is not None:
@@ -130,6 +155,6 @@ def run(args: argparse.Namespace) -> int:
         json.dump([r.to_dict() for r in rows], sys.stdout)
         sys.stdout.write("\n")
         return 0
-    print(markdown_table(rows, scfg), end="")
+    print(table, end="")
     print("wrote " + ", ".join(map(str, written)))
     return 0

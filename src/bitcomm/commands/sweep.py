@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from bitcomm.commands.common import add_task_flags
-from bitcomm.commands.flags import EVAL_EPISODES, SEED, check_eval, out_dir
+from bitcomm.commands.flags import EVAL_EPISODES, SEED, add_threads_flag, check_eval, out_dir, use_threads
 from bitcomm.config import TaskConfig
 from bitcomm.policies.source import add_policy_flags, sources_from_args
 from bitcomm.studies.sweep import DEFAULT_SWEEP, SWEEPABLE, parse_param, plot_sweep, run_sweep, with_param, write_csv
@@ -39,6 +39,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="folder for sweep.csv, sweep.png and sweep.svg (default %(default)s)",
     )
     p.add_argument("--json", action="store_true", help="print the points as one JSON list")
+    add_threads_flag(p)
     add_task_flags(p)
     add_policy_flags(p, several=True)
     p.set_defaults(run=run)
@@ -57,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     sources = sources_from_args(args)
     task = sources[0].task_from_args(args)  # a learned policy's task when RUN is given; others join it
     check_points(task, params, episodes)
+    use_threads(args)
     points = run_sweep(sources, task, params, episodes, args.seed)
     out = Path(args.out)
     csv_path = write_csv(points, out / "sweep.csv")

@@ -10,10 +10,13 @@ default local, `--workers`, `--staleness`; see `bitcomm.commands.backend_flags`)
 from __future__ import annotations
 
 import argparse
+import dataclasses
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from bitcomm.commands import env_train
-from bitcomm.commands.backend_flags import add_backend_flags, execution
+from bitcomm.commands.backend_flags import add_backend_flags, check_resume_flags, execution
 from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.env_flags import add_env_flags
 from bitcomm.commands.flags import (
@@ -27,8 +30,13 @@ from bitcomm.commands.flags import (
     use_threads,
 )
 from bitcomm.commands.learning_flags import add_learning_flags, learning_overrides
+from bitcomm.errors import bad_value
 from bitcomm.learn.options import field_default
 from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
+
+if TYPE_CHECKING:
+    from bitcomm.config import TaskConfig
+    from bitcomm.learn.config import TrainConfig
 
 GRID_CONFIG = ("bitcomm.learn.config", "TrainConfig")
 ENV_CONFIG = ("bitcomm.learn.env_config", "EnvTrainConfig")
@@ -39,10 +47,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     from bitcomm.policies.source import mark_task_defaults
 
     p = sub.add_parser("train", help="train agents to act and communicate")
-    p.add_argument("--estimator", choices=("standard", "improved"), default="improved", help="default %(default)s")
-    p.add_argument("--messages", choices=("bitwise", "onehot"), default="bitwise", help="default %(default)s")
+    # None: not typed (the defaults below), which a resume tells from a typed value (`check_resume_flags`)
+    p.add_argument("--estimator", choices=("standard", "improved"), default=None, help="default improved")
+    p.add_argument("--messages", choices=("bitwise", "onehot"), default=None, help="default bitwise")
     p.add_argument(
-        "--recipe", choices=tuple(RECIPES), default=DEFAULT_RECIPE, help="learning options (default %(default)s)"
+        "--recipe", choices=tuple(RECIPES), default=None, help=f"learning options (default {DEFAULT_RECIPE})"
     )
     p.add_argument(
         "--episodes",
@@ -51,7 +60,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help=f"budget of environment episodes (default {field_default(*GRID_CONFIG, 'episodes'):,}; with --env "
         f"{field_default(*ENV_CONFIG, 'episodes'):,})",
     )
-    p.add_argument("--seed", type=SEED, default=0, help="default %(default)s")
+    p.add_argument("--seed", type=SEED, default=None, help="default 0")
     p.add_argument(
         "--out", type=out_dir, default=None, help="run folder (default runs/<recipe>-<estimator>-<messages>-s<seed>)"
     )
@@ -77,28 +86,71 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from bitcomm.learn.config import TrainConfig, make_train_config
-    from bitcomm.learn.run import train
+STRUCTURAL_DEFAULTS = {"recipe": DEFAULT_RECIPE, "estimator": "improved", "messages": "bitwise", "seed": 0}
+"""What a run is trained as when its flag is not typed."""
+
+
+MEANT: dict[str, Callable[[TaskConfig], Any]] = {
+    "observes": lambda task: tuple(task.env.observed),
+    "recipients": lambda task: task.recipient_matrix.tolist(),
+}
+"""The task flags whose value may be left to a default that stands for it, by what they mean."""
+
+
+def typed_structure(args: argparse.Namespace) -> dict[str, Any]:
+    """The flags of `STRUCTURAL_DEFAULTS` typed on the command line."""
+    return {name: getattr(args, name) for name in STRUCTURAL_DEFAULTS if getattr(args, name) is not None}
+
+
+def resumed_config(args: argparse.Namespace, out: Path) -> TrainConfig:
+    """The config of the run in `out`, with the budget and how often it saves as typed now; one line for any other
+    flag typed with a value the run was not trained with."""
+    from bitcomm.learn.config import MODEL_OPTIONS, TrainConfig
     from bitcomm.learn.run_folder import resume_config
+    from bitcomm.policies.source import TASK_FLAGS, given_task_flags, resolve_task
+
+    cfg = resume_config(out, TrainConfig.from_dict, args.episodes)
+    task = resolve_task(args, cfg.task)
+
+    def recorded(name: str, of: Any = cfg.task) -> Any:
+        if name in MEANT:  # a default (None: the ring) and the map it stands for are the same run
+            return MEANT[name](of)
+        if name in TASK_FLAGS:
+            part, field = TASK_FLAGS[name]
+            return getattr(getattr(of, part), field)
+        return getattr(cfg.model if name in MODEL_OPTIONS else cfg, name)
+
+    overrides = learning_overrides(args)
+    typed = {**typed_structure(args), **overrides, **{d: recorded(d, task) for d in given_task_flags(args)}}
+    check_resume_flags(out, typed, recorded)
+    saving = {k: v for k, v in overrides.items() if k in ("checkpoint_seconds", "keep_checkpoints")}
+    return dataclasses.replace(cfg, **saving)  # type: ignore[arg-type]
+
+
+def run(args: argparse.Namespace) -> int:
+    from bitcomm.learn.config import make_train_config
+    from bitcomm.learn.run import train
+    from bitcomm.learn.run_folder import check_start
 
     if args.env is not None or (args.resume and env_train.is_env_run(args.out)):
         use_threads(args)
         return env_train.train(args)
     env_train.check_env_only(args)
-    out = args.out or Path("runs") / f"{args.recipe}-{args.estimator}-{args.messages}-s{args.seed}"
+    structure = {**STRUCTURAL_DEFAULTS, **typed_structure(args)}
+    out = args.out or Path("runs") / "{recipe}-{estimator}-{messages}-s{seed}".format(**structure)
     if args.resume:
-        cfg = resume_config(out, TrainConfig.from_dict, args.episodes)
+        cfg = resumed_config(args, out)
     else:
+        check_start(out, resume=False)  # before a line is printed
         cfg = make_train_config(
-            args.recipe,
+            structure.pop("recipe"),
             task_from_args(args),
-            estimator=args.estimator,
-            messages=args.messages,
-            seed=args.seed,
             episodes=args.episodes,
+            **structure,
             **learning_overrides(args),
         )
+    if args.workers is not None and args.backend != "ray" and cfg.mode != "a3c":
+        raise bad_value("workers", args.workers, "acts only with --mode a3c or --backend ray")
     cfg = execution(args, cfg)
     check_train(cfg)
     threads = use_threads(args)

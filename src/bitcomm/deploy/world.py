@@ -18,6 +18,7 @@ with wrong fields) is ignored and counted (`DeployResult.network["control_malfor
 
 from __future__ import annotations
 
+import os
 import secrets
 import select
 import socket
@@ -95,12 +96,16 @@ class _Agents:
         port = self.listener.getsockname()[1]
         self.logs: list[IO[bytes]] = []
         self.procs: list[subprocess.Popen[bytes]] = []
+        # one torch thread an agent: it acts on one observation at a time, and the agents already take a core each
+        env = {**os.environ, "OMP_NUM_THREADS": "1"}
         for i in range(n):
             log = tempfile.TemporaryFile()
             self.logs.append(log)
             cmd = [sys.executable, "-m", "bitcomm.deploy.agent", "--world", f"127.0.0.1:{port}", "--agent", str(i)]
             self.procs.append(
-                subprocess.Popen([*cmd, "--token", self.token], stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+                subprocess.Popen(
+                    [*cmd, "--token", self.token], stdin=subprocess.DEVNULL, stdout=log, stderr=log, env=env
+                )
             )
         self.conns: list[LineSocket | None] = [None] * n
         self.udp_ports = [0] * n

@@ -37,7 +37,8 @@ goal_exchange_v0.parallel_env(size=10, n_agents=2, max_steps=256, observes=None,
   this probability and every recipient reads zeros.
 - `render_mode`: None or `"ansi"` (a text grid).
 
-A bad value raises `bitcomm.errors.ConfigError`, whose one-line message names the parameter.
+A numpy integer or float is taken wherever a Python one is (`size=np.int64(4)`). A bad value raises
+`bitcomm.errors.ConfigError`, whose one-line message names the parameter.
 
 ### Observation Space
 
@@ -51,6 +52,11 @@ arrived, the message was dropped, or the slot is unused. Policies in the paper a
 
 `move`: 0 stay, 1 up (row - 1), 2 down (row + 1), 3 left (column - 1), 4 right (column + 1); a move
 off the grid leaves the agent in place and counts as invalid. `message`: the K bits sent this step.
+`step` takes one action per live agent, each a dict of exactly these two keys: `move` a Python or numpy
+integer (or a 0-d integer array) in [0, 5), never a bool or a float; `message` K values in {0, 1}; what
+`action_space(agent).sample()` gives is one. Anything else, or an action for an agent not in `agents`,
+raises `ConfigError` with one line naming it, before the episode moves; a live agent without an action
+raises `KeyError`.
 
 ### Rewards
 
@@ -74,6 +80,8 @@ after `max_steps`. Then `agents` empties and `reset()` starts a new episode. `in
 
 from __future__ import annotations
 
+import numbers
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -85,12 +93,13 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.envs.core import N_MOVES
 from bitcomm.envs.render import render_ansi
 from bitcomm.envs.vec import VecGoalExchange
-from bitcomm.errors import bad_value
+from bitcomm.errors import ConfigError, bad_value
 
 AgentID = str
 ObsDict = dict[str, np.ndarray]
 ActionDict = dict[str, Any]
 RENDER_MODES = ("ansi",)
+ACTION_KEYS = {"move", "message"}
 # observations, rewards, terminations, truncations, infos
 StepReturn = tuple[
     dict[AgentID, ObsDict], dict[AgentID, float], dict[AgentID, bool], dict[AgentID, bool], dict[AgentID, dict]
@@ -145,19 +154,19 @@ class GoalExchangeParallelEnv(ParallelEnv[AgentID, ObsDict, ActionDict]):
     def step(self, actions: dict[AgentID, ActionDict]) -> StepReturn:
         if self._vec is None or not self.agents:
             raise RuntimeError("the episode is over: call reset() before step()")
-        n, K = self.task.env.n_agents, self.task.channel.bits
+        if not isinstance(actions, Mapping):
+            raise bad_value("actions", actions, f"must be a dict from live agent to action (live: {self.agents})")
+        unknown = [a for a in actions if a not in self.agents]
+        if unknown:
+            raise bad_value("agent", unknown[0], f"actions are for live agents only: {self.agents}")
+        n = self.task.env.n_agents
         moves = np.zeros((1, n), dtype=np.int64)
-        bits = np.zeros((1, n, K), dtype=np.uint8)
+        bits = np.zeros((1, n, self.task.channel.bits), dtype=np.uint8)
         for agent in self.agents:
             if agent not in actions:
                 raise KeyError(f"no action for live agent {agent!r}")
-            i, action = self._index[agent], actions[agent]
-            move, message = int(action["move"]), np.asarray(action["message"])
-            if not 0 <= move < N_MOVES:
-                raise ValueError(f"{agent}: move must be in 0..{N_MOVES - 1}, got {move}")
-            if message.shape != (K,) or not np.isin(message, (0, 1)).all():
-                raise ValueError(f"{agent}: message must be {K} bits in {{0, 1}}, got {message!r}")
-            moves[0, i], bits[0, i] = move, message
+            i = self._index[agent]
+            moves[0, i], bits[0, i] = self._action(agent, actions[agent])
 
         result, dropped = self._vec.step(moves, bits)
         team = float(result.team_reward[0])
@@ -170,6 +179,28 @@ class GoalExchangeParallelEnv(ParallelEnv[AgentID, ObsDict, ActionDict]):
         if terminated or truncated:
             self.agents = []
         return observations, rewards, terminations, truncations, infos
+
+    def _action(self, agent: AgentID, action: Any) -> tuple[int, np.ndarray]:
+        """`agent`'s move and K bits, or one line naming what is wrong. An action is what
+        `action_space(agent).sample()` gives: a dict of exactly `move`, an integer in [0, 5) (a Python or numpy
+        integer, or a 0-d integer array; not a bool, not a float), and `message`, K bits in {0, 1}."""
+        name = f"actions[{agent!r}]"
+        if not isinstance(action, Mapping):
+            raise bad_value(name, action, "must be a dict with the keys 'move' and 'message'")
+        if set(action) != ACTION_KEYS:
+            keys = ", ".join(sorted(map(repr, action)))
+            raise ConfigError(
+                f"invalid {name}: has the keys {keys or 'none'}; an action has exactly 'move' and 'message'"
+            )
+        move, K = action["move"], self.task.channel.bits
+        if isinstance(move, np.ndarray) and move.shape == ():
+            move = move[()]  # a 0-d array: its scalar
+        if isinstance(move, (bool, np.bool_)) or not isinstance(move, numbers.Integral) or not 0 <= int(move) < N_MOVES:
+            raise bad_value(f"{name}['move']", action["move"], f"must be an integer in [0, {N_MOVES})")
+        message = np.asarray(action["message"])
+        if message.shape != (K,) or not np.isin(message, (0, 1)).all():
+            raise bad_value(f"{name}['message']", action["message"], f"must be {K} bits in {{0, 1}}")
+        return int(move), message
 
     def _observations(self) -> dict[AgentID, ObsDict]:
         assert self._vec is not None
@@ -210,7 +241,8 @@ def parallel_env(
     drop_prob: float = 0.0,
     render_mode: str | None = None,
 ) -> GoalExchangeParallelEnv:
-    """The task as a PettingZoo `ParallelEnv`; every parameter of SPEC sections 1 and 2 is a keyword."""
+    """The task as a PettingZoo `ParallelEnv`; every parameter of SPEC sections 1 and 2 is a keyword. A numpy
+    number is taken wherever a Python one is (`size=np.int64(4)`, `flip_prob=np.float32(0.1)`); a bool is not."""
     task = TaskConfig(
         EnvConfig(
             size=size,

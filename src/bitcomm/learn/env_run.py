@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import CHECKPOINTS, LATEST, is_env_config, read_config
+from bitcomm.checkpoint import is_env_config, read_config
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
@@ -28,8 +28,8 @@ from bitcomm.learn.env_rollout import make_vec, play
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
+    check_start,
     finite_or_stop,
-    has_checkpoint,
     prepare,
     read_json_object,
     restore_learner,
@@ -45,8 +45,7 @@ def train_env(cfg: EnvTrainConfig, out: Path, resume: bool = False, progress: bo
     """Train until `cfg.episodes` episodes are played (whole batches); returns the latest checkpoint."""
     out = Path(out)
     keep_freed_memory()
-    if resume and not has_checkpoint(out):
-        raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
+    check_start(out, resume)
     # refuses a bad env or channel before the folder is touched; closed (its workers stopped) however the run ends
     with make_vec(cfg, cfg.num_envs, workers=cfg.env_workers) as vec:
         try:

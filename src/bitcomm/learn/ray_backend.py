@@ -25,8 +25,10 @@ from __future__ import annotations
 import math
 import os
 import re
+import socket
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -118,15 +120,72 @@ def join(rollouts: list[dict[str, np.ndarray]]) -> Rollout:
     return Rollout(**tensors)
 
 
+PROBE_S = 5.0
+"""How long `check_address` waits for a TCP connection to an explicit `HOST:PORT` before refusing it: Ray itself
+retries an address where nothing listens for many minutes (20 tries of about 40 s, each logging "Failed to
+connect to GCS")."""
+ADDRESS_FORMS = "must be auto, HOST:PORT or ray://HOST:PORT"
+
+
+def _host_port(address: str) -> tuple[str, int]:
+    """`HOST:PORT` or `ray://HOST:PORT` split (an IPv6 host in brackets loses them); one line if malformed."""
+    rest = address.strip().removeprefix("ray://")
+    host, sep, port = rest.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not (sep and host and port.isascii() and port.isdigit() and 1 <= int(port) <= 65535) or "/" in host:
+        raise bad_value("address", address, ADDRESS_FORMS)
+    return host, int(port)
+
+
+def check_address(address: str | None, timeout: float = PROBE_S) -> None:
+    """One line, within about `timeout` seconds, unless `address` is None, `auto` or a `HOST:PORT` (or
+    `ray://HOST:PORT`) where something accepts a TCP connection: Ray would wait for it for many minutes.
+    Starts nothing, so a caller may check before it makes the run folder."""
+    if address is None:
+        return
+    if not isinstance(address, str):
+        raise bad_value("address", address, ADDRESS_FORMS)
+    if address.strip() == "auto":
+        return
+    host, port = _host_port(address)
+    deadline = time.monotonic() + timeout
+    reasons = []
+    for candidate in _candidates(host):
+        try:
+            socket.create_connection((candidate, port), timeout=max(0.1, deadline - time.monotonic())).close()
+            return
+        except OSError as err:
+            reasons.append(f"{candidate}:{port}: {err.strerror or err or type(err).__name__}")
+    why = "; ".join(reasons)
+    raise bad_value("address", address, f"cannot reach a Ray cluster there (nothing accepts a connection: {why})")
+
+
+def _candidates(host: str) -> Iterator[str]:
+    """Where to look for `host`'s head: the host; for a loopback one also this node's IP, which Ray connects to
+    instead (a head listening there only is fine)."""
+    yield host
+    if host in ("localhost", "127.0.0.1", "::1"):
+        try:
+            from ray.util import get_node_ip_address
+
+            node = get_node_ip_address()
+        except Exception:  # no Ray, or no route: the loopback answer stands
+            return
+        if node != host:
+            yield node
+
+
 def connect(address: str | None, workers: int) -> bool:
     """Join the cluster at `address`, shipping this bitcomm package to its workers (Ray's `py_modules`: the
     nodes need its dependencies, not bitcomm); None: a Ray already started in this process, else a new local
-    instance with a CPU per actor. Returns whether this call started Ray; one line if no cluster answers or it
-    is too small."""
+    instance with a CPU per actor. Returns whether this call started Ray; one line if the address is malformed
+    or nothing listens there (`check_address`, even with a Ray already started), no cluster answers or it is
+    too small."""
     import ray
 
     import bitcomm
 
+    check_address(address)
     started = False
     if not ray.is_initialized():
         try:

@@ -19,10 +19,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import (
-    CHECKPOINTS,
-    LATEST,
-)
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
@@ -31,8 +27,8 @@ from bitcomm.learn.held_out import held_out
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
+    check_start,
     finite_or_stop,
-    has_checkpoint,
     oracle_record,
     prepare,
     restore_learner,
@@ -50,8 +46,11 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = Tr
     returns the latest checkpoint."""
     out = Path(out)
     keep_freed_memory()
-    if resume and not has_checkpoint(out):
-        raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
+    check_start(out, resume)
+    if cfg.backend == "ray":
+        from bitcomm.learn.ray_backend import check_address
+
+        check_address(address)  # before the folder is made: Ray itself waits minutes for a host that is not there
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:

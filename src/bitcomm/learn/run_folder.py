@@ -461,6 +461,7 @@ def resume_config(out: Path, from_dict: Callable[[dict[str, Any]], ConfigT], epi
     """The config the run in `out` was started with (`TrainConfig.from_dict`, or a wrapped env's
     `EnvTrainConfig.from_dict`), with a new budget if one is given. It reads the checkpoint's metadata alone:
     `prepare` reads and checks the tensors when the run resumes."""
+    check_start(out, resume=True)
     d = read_config(out)
     if episodes is not None:
         d["episodes"] = episodes
@@ -471,17 +472,50 @@ def has_checkpoint(out: Path) -> bool:
     return (out / CHECKPOINTS / LATEST).is_file()
 
 
+RUN_FILES = ("config.json", "metrics.csv", "learning_curve.png", "learning_curve.svg")
+"""The files a run writes at its folder's top, which a fresh run overwrites."""
+
+
+def is_run_folder(out: Path) -> bool:
+    """Whether `out`'s config.json is a run's (`write_config`'s record: a config with its seed and versions)."""
+    try:
+        record = json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(record, dict) and "seed" in record and "versions" in record
+
+
+def check_start(out: Path, resume: bool) -> None:
+    """One line, before anything is written, for a start `out` cannot take: a resume without a checkpoint, a
+    fresh run where a run is, or a fresh run that would overwrite files of `RUN_FILES` that are not a run's. A run
+    stopped before its first checkpoint is started again from scratch."""
+    if resume:
+        if not has_checkpoint(out):
+            why = (
+                "this run stopped before its first checkpoint (one is written every --checkpoint-seconds), so "
+                "there is nothing to resume; train it again without --resume"
+                if is_run_folder(out)
+                else f"no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)"
+            )
+            raise ConfigError(f"invalid out={str(out)!r}: {why}")
+        return
+    if has_checkpoint(out):
+        raise ConfigError(f"invalid out={str(out)!r}: it already holds a run (use --resume, or another --out)")
+    present = [name for name in RUN_FILES if (out / name).exists()]
+    if present and not is_run_folder(out):
+        raise ConfigError(
+            f"invalid out={str(out)!r}: it holds {present[0]}, which is not a bitcomm run's and a new run would "
+            "overwrite it; give another --out"
+        )
+
+
 def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
     """Check the folder (its lock held) and clear what a killed run left; on resume return the
     checkpoint's state (with its weights), else None."""
-    if not resume:
-        if has_checkpoint(out):
-            raise ConfigError(f"invalid out={str(out)!r}: it already holds a run (use --resume, or another --out)")
-        clean(out)
-        return None
-    if not has_checkpoint(out):
-        raise ConfigError(f"invalid out={str(out)!r}: no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)")
+    check_start(out, resume)
     clean(out)
+    if not resume:
+        return None
     weights, info = load_weights(out)
     state = load_state(resolve(out))
     for key in ("episodes", "batches", "agent_steps", "wall_s", "recent_lengths", "recent_returns"):

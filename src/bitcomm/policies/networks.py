@@ -89,6 +89,9 @@ class ModelConfig:
             raise bad_value(
                 "sender-hidden", self.sender_hidden, f"acts only with --message-reads observed; leave it at {width}"
             )
+        stride = ModelConfig.__dataclass_fields__["conv_stride"].default
+        if self.conv_stride != stride and self.encoder != "conv":
+            raise bad_value("conv-stride", self.conv_stride, f"acts only with --encoder conv; leave it at {stride}")
         channels = tuple(self.conv_channels)
         if not channels or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in channels):
             raise bad_value("conv_channels", self.conv_channels, "one or more integers >= 1")

@@ -91,7 +91,15 @@ def resolve_task(args: argparse.Namespace, base: TaskConfig, label: str = "RUN",
         changes[part][name] = value
     env: EnvConfig = dataclasses.replace(base.env, **changes["env"])
     channel: ChannelConfig = dataclasses.replace(base.channel, **changes["channel"])
-    return TaskConfig(env, channel)
+    task = TaskConfig(env, channel)
+    if strict and task.slots != base.slots:  # the senders an agent hears are its network's message inputs too
+        flag = "recipients" if "recipients" in given else "observes"
+        raise bad_value(
+            flag,
+            given.get(flag),
+            f"{label} was trained to hear {base.slots} sender(s) per agent; this would give {task.slots}",
+        )
+    return task
 
 
 @lru_cache(maxsize=4)
