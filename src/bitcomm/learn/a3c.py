@@ -231,8 +231,9 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                     raise RuntimeError(f"a3c worker {dead[0]} died (exit code {procs[dead[0]].exitcode})") from None
                 continue
             if msg[0] == "error":
-                if first_nonfinite(**checkpoint_weights(learner)):  # a worker failed on NaN weights: say so
-                    finite_or_stop(out, learner, prog.episodes)
+                with lock:
+                    if first_nonfinite(**checkpoint_weights(learner)):  # a worker failed on NaN weights: say so
+                        finite_or_stop(out, learner, prog.episodes)
                 raise RuntimeError(f"a3c worker {msg[1]} failed:\n{msg[2]}")
             if msg[0] == "done":
                 done.add(msg[1])
@@ -244,7 +245,10 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
             row = prog.add_batch(length, team_return, int(length.sum()) * n, sent_greedy=sent_greedy)
             row.update({"charts/success": float(success.mean()), **stats})
             row.update(learner.senders_wait.figures())  # the main process watches, not the worker whose stats these are
-            finite_or_stop(out, learner, prog.episodes)
+            # between two steps, as `save` reads: unlocked, this check once found a NaN that no worker's step
+            # had before or after it (docs/tuning.md session 48)
+            with lock:
+                finite_or_stop(out, learner, prog.episodes)
             logger.log(row)
             bar.update(min(len(length), max(0, bar.total - bar.n)))  # workers overshoot the budget: the bar stops at it
             bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")
