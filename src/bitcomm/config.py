@@ -7,13 +7,12 @@ bad value fails early with one line that names it (see `bitcomm.errors`).
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
-from bitcomm.errors import bad_value, is_number
+from bitcomm.errors import bad_value, is_integer, is_number
 
 MAX_SEED = 2**32 - 1
 """Seeds feed numpy's SeedSequence and torch.manual_seed; 32 bits is what both take everywhere."""
@@ -29,16 +28,11 @@ MAX_STEPS = 100_000
 """Episode length cap (`max_steps`): beyond it a random policy's evaluation would run for days."""
 
 
-def _is_integer(value: object) -> bool:
-    """A Python or numpy integer; not a bool (True is an int to Python, never a count here)."""
-    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-
-
 def _probability(config: object, field: str, name: str) -> None:
     """One error line unless `config.field` is a number in [0, 1] (a numpy one is taken; a bool is not); stored
     as a Python float, so a config stays JSON."""
     value = getattr(config, field)
-    if not (is_number(value) and not isinstance(value, np.bool_) and 0.0 <= float(value) <= 1.0):  # type: ignore[arg-type]
+    if not (is_number(value) and 0.0 <= float(value) <= 1.0):  # type: ignore[arg-type]
         raise bad_value(name, value, "must be a probability in [0, 1]")
     object.__setattr__(config, field, float(value))  # type: ignore[arg-type]
 
@@ -47,7 +41,7 @@ def _count(config: object, field: str, name: str, least: int, most: int, why: st
     """One error line unless `config.field` is an integer in [least, most] (a numpy one is taken; a bool is not);
     stored as a Python int. `why` explains the bounds."""
     value = getattr(config, field)
-    if not _is_integer(value) or not least <= value <= most:
+    if not is_integer(value) or not least <= value <= most:
         raise bad_value(name, value, f"must be an integer in [{least}, {most}] ({why})")
     object.__setattr__(config, field, int(value))
 
@@ -102,7 +96,7 @@ class EnvConfig:
             if len(obs) != self.n_agents:
                 raise bad_value("observes", obs, f"needs one entry per agent ({self.n_agents})")
             for i, j in enumerate(obs):
-                if not _is_integer(j) or not 0 <= j < self.n_agents:
+                if not is_integer(j) or not 0 <= j < self.n_agents:
                     raise bad_value("observes", obs, f"entries must be agents 0..{self.n_agents - 1}")
                 if i == j:
                     raise bad_value(
@@ -144,7 +138,7 @@ class ChannelConfig:
         _probability(self, "drop_prob", "drop_prob")
         if self.recipients is not None:
             rows = tuple(tuple(r) for r in self.recipients)
-            if not all(_is_integer(x) for r in rows for x in r):
+            if not all(is_integer(x) for r in rows for x in r):
                 raise bad_value("recipients", rows, "entries must be agent indices (integers)")
             object.__setattr__(self, "recipients", tuple(tuple(int(x) for x in r) for r in rows))
 

@@ -16,8 +16,13 @@ def bad_value(name: str, value: object, allowed: str) -> ConfigError:
 
 def check_int(name: str, value: object, least: int) -> None:
     """One error line unless `value` is an integer >= `least` (a bool or 2.5 is not; `name` as a flag)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+    if not is_integer(value) or value < least:  # type: ignore[operator]
         raise bad_value(name.replace("_", "-"), value, f"must be an integer >= {least}")
+
+
+def is_integer(value: object) -> bool:
+    """A Python or numpy integer that is not a bool (True is an int to Python, never a count here)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def is_number(value: object) -> bool:

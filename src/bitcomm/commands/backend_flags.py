@@ -12,31 +12,27 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bitcomm.errors import bad_value
+from bitcomm.learn.ray_address import ADDRESS_FORMS, host_port
 
 if TYPE_CHECKING:
     from bitcomm.learn.config import TrainConfig
 
-ADDRESS = re.compile(r"(ray://)?[A-Za-z0-9._\-\[\]:]*[A-Za-z0-9\]]:(\d{1,5})")
-"""`HOST:PORT` of a head node's GCS (as `ray start --head` prints it) or `ray://HOST:PORT` of a Ray client."""
-
 
 def ray_address(text: str) -> str:
     """An argparse type: `auto` (the cluster `ray start` left on this machine), `HOST:PORT` or `ray://HOST:PORT`."""
-    match = ADDRESS.fullmatch(text.strip())
-    if text.strip() == "auto" or (match and 1 <= int(match.group(2)) <= 65535):
+    if text.strip() == "auto" or host_port(text) is not None:
         return text.strip()
-    raise argparse.ArgumentTypeError(f"invalid value {text!r}: must be auto, HOST:PORT or ray://HOST:PORT")
+    raise argparse.ArgumentTypeError(f"invalid value {text!r}: {ADDRESS_FORMS}")
 
 
-RESUME_MAY_CHANGE = frozenset(
-    {"episodes", "backend", "workers", "staleness", "env_workers", "checkpoint_seconds", "keep_checkpoints"}
-)
+SAVING = ("checkpoint_seconds", "keep_checkpoints")
+"""The options that say how often a run saves: a resume applies them as typed now."""
+RESUME_MAY_CHANGE = frozenset({"episodes", "backend", "workers", "staleness", "env_workers", *SAVING})
 """The options a resume takes from its command line: the budget, where it runs and how often it saves, none of which
 changes what it learns."""
 

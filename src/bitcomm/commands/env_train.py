@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bitcomm.commands.backend_flags import check_resume_flags
+from bitcomm.commands.backend_flags import SAVING, check_resume_flags
 from bitcomm.commands.env_flags import ENV_ONLY
 from bitcomm.commands.learning_flags import learning_overrides
 from bitcomm.errors import bad_value
@@ -100,7 +100,7 @@ def resumed_env_config(args: argparse.Namespace, out: Path) -> EnvTrainConfig:
         return getattr(cfg.channel if name in channel else cfg, name)
 
     check_resume_flags(out, typed, recorded)
-    now = ("env_workers", "checkpoint_seconds", "keep_checkpoints")  # where the copies are stepped, how often it saves
+    now = ("env_workers", *SAVING)  # where the copies are stepped, how often it saves
     return dataclasses.replace(cfg, **{k: typed[k] for k in now if k in typed})
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bitcomm.commands import env_train
-from bitcomm.commands.backend_flags import add_backend_flags, check_resume_flags, execution
+from bitcomm.commands.backend_flags import SAVING, add_backend_flags, check_resume_flags, execution
 from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.env_flags import add_env_flags
 from bitcomm.commands.flags import (
@@ -123,7 +123,7 @@ def resumed_config(args: argparse.Namespace, out: Path) -> TrainConfig:
     overrides = learning_overrides(args)
     typed = {**typed_structure(args), **overrides, **{d: recorded(d, task) for d in given_task_flags(args)}}
     check_resume_flags(out, typed, recorded)
-    saving = {k: v for k, v in overrides.items() if k in ("checkpoint_seconds", "keep_checkpoints")}
+    saving = {k: v for k, v in overrides.items() if k in SAVING}
     return dataclasses.replace(cfg, **saving)  # type: ignore[arg-type]
 
 

@@ -80,7 +80,6 @@ after `max_steps`. Then `agents` empties and `reset()` starts a new episode. `in
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Mapping
 from typing import Any
 
@@ -93,7 +92,7 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.envs.core import N_MOVES
 from bitcomm.envs.render import render_ansi
 from bitcomm.envs.vec import VecGoalExchange
-from bitcomm.errors import ConfigError, bad_value
+from bitcomm.errors import ConfigError, bad_value, is_integer
 
 AgentID = str
 ObsDict = dict[str, np.ndarray]
@@ -195,7 +194,7 @@ class GoalExchangeParallelEnv(ParallelEnv[AgentID, ObsDict, ActionDict]):
         move, K = action["move"], self.task.channel.bits
         if isinstance(move, np.ndarray) and move.shape == ():
             move = move[()]  # a 0-d array: its scalar
-        if isinstance(move, (bool, np.bool_)) or not isinstance(move, numbers.Integral) or not 0 <= int(move) < N_MOVES:
+        if not is_integer(move) or not 0 <= move < N_MOVES:
             raise bad_value(f"{name}['move']", action["move"], f"must be an integer in [0, {N_MOVES})")
         message = np.asarray(action["message"])
         if message.shape != (K,) or not np.isin(message, (0, 1)).all():

@@ -38,6 +38,7 @@ import torch
 from bitcomm.errors import ConfigError, bad_value
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.config import TrainConfig
+from bitcomm.learn.ray_address import ADDRESS_FORMS, host_port
 from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.learn.run_folder import (
     Logger,
@@ -124,17 +125,6 @@ PROBE_S = 5.0
 """How long `check_address` waits for a TCP connection to an explicit `HOST:PORT` before refusing it: Ray itself
 retries an address where nothing listens for many minutes (20 tries of about 40 s, each logging "Failed to
 connect to GCS")."""
-ADDRESS_FORMS = "must be auto, HOST:PORT or ray://HOST:PORT"
-
-
-def _host_port(address: str) -> tuple[str, int]:
-    """`HOST:PORT` or `ray://HOST:PORT` split (an IPv6 host in brackets loses them); one line if malformed."""
-    rest = address.strip().removeprefix("ray://")
-    host, sep, port = rest.rpartition(":")
-    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
-    if not (sep and host and port.isascii() and port.isdigit() and 1 <= int(port) <= 65535) or "/" in host:
-        raise bad_value("address", address, ADDRESS_FORMS)
-    return host, int(port)
 
 
 def check_address(address: str | None, timeout: float = PROBE_S) -> None:
@@ -147,7 +137,10 @@ def check_address(address: str | None, timeout: float = PROBE_S) -> None:
         raise bad_value("address", address, ADDRESS_FORMS)
     if address.strip() == "auto":
         return
-    host, port = _host_port(address)
+    parts = host_port(address)
+    if parts is None:
+        raise bad_value("address", address, ADDRESS_FORMS)
+    host, port = parts
     deadline = time.monotonic() + timeout
     reasons = []
     for candidate in _candidates(host):
@@ -178,14 +171,12 @@ def _candidates(host: str) -> Iterator[str]:
 def connect(address: str | None, workers: int) -> bool:
     """Join the cluster at `address`, shipping this bitcomm package to its workers (Ray's `py_modules`: the
     nodes need its dependencies, not bitcomm); None: a Ray already started in this process, else a new local
-    instance with a CPU per actor. Returns whether this call started Ray; one line if the address is malformed
-    or nothing listens there (`check_address`, even with a Ray already started), no cluster answers or it is
-    too small."""
+    instance with a CPU per actor. Returns whether this call started Ray; one line if no cluster answers or it is too
+    small (`bitcomm.learn.run.train` has checked the address with `check_address` before making the run folder)."""
     import ray
 
     import bitcomm
 
-    check_address(address)
     started = False
     if not ray.is_initialized():
         try:
