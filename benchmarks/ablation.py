@@ -38,6 +38,8 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig  # noqa: E402
+from bitcomm.learn.config import recipe_values  # noqa: E402
 from bitcomm.studies.compare import read_curve  # noqa: E402
 from run_marks import parse_marks, reached_cell, rolling_at_marks  # noqa: E402  (benchmarks/ is not a package)
 from solve import solve_seed  # noqa: E402
@@ -46,20 +48,29 @@ GROUPS: dict[str, tuple[str, ...]] = {"ppo_reuse": ("epochs", "minibatches", "cl
 """Options changed together: a clip range means nothing without reuse, and reuse is the epochs x minibatches."""
 
 
+OBSERVED_ONLY = ("message_divergence", "held_messages")
+"""Options that need a message head reading only the observed goal (`message_reads` `observed`)."""
+
+
 def _fit(change: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
-    """A batch of E episodes splits into at most E minibatches: where a row leaves fewer episodes per batch
-    than minibatches, the minibatches follow (the only coupling between the recipes' options)."""
+    """The couplings between the recipes' options. A batch of E episodes splits into at most E minibatches: where
+    a row leaves fewer episodes per batch than minibatches, the minibatches follow. A row that turns on an option
+    of `OBSERVED_ONLY` over a head that reads everything brings the observed head with it."""
     episodes = change.get("num_envs", base.get("num_envs", 1))
     if change.get("minibatches", base.get("minibatches", 1)) > episodes:
         change = {**change, "minibatches": episodes}
+    if (
+        any(change.get(k, 0) for k in OBSERVED_ONLY)
+        and change.get("message_reads", base["message_reads"]) != "observed"
+    ):
+        change = {**change, "message_reads": "observed"}
     return change
 
 
-def rows(base: str, target: str) -> list[tuple[str, dict[str, Any]]]:
-    """(name, overrides on the base recipe): the base, one row per differing option or group, the target."""
-    from bitcomm.learn.recipes import RECIPES
-
-    b, t = RECIPES[base], RECIPES[target]
+def rows(base: str, target: str, task: TaskConfig) -> list[tuple[str, dict[str, Any]]]:
+    """(name, overrides on the base recipe): the base, one row per option or group in which the two recipes differ
+    on `task`, the target."""
+    b, t = recipe_values(base, task), recipe_values(target, task)
     differing = [k for k in t if b.get(k) != t[k]]
     grouped = {k for keys in GROUPS.values() for k in keys}
     out: list[tuple[str, dict[str, Any]]] = [(base, {})]
@@ -128,7 +139,7 @@ def main() -> None:
     if a.max_episodes is not None and a.max_episodes < 1:
         ap.error(f"--max-episodes {a.max_episodes}: must be >= 1")
     out = a.out = a.out or Path("runs/ablation") / f"{a.base}-to-{a.target}-{a.size}x{a.size}"
-    plan = rows(a.base, a.target)
+    plan = rows(a.base, a.target, TaskConfig(EnvConfig(size=a.size), ChannelConfig(bits=a.bits)))
     if a.only:
         names = {n for n, _ in plan}
         wanted = [n.strip() for n in a.only.split(",")]

@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+
 ROOT = Path(__file__).resolve().parents[1]
 TINY = "--modes sync --recipes reinforced --batches 1 --warmup 1 --num-envs 8 --threads 1 --single-pass"
 
@@ -56,24 +58,30 @@ def test_train_speed_takes_learning_options_by_set_and_refuses_bad_ones_in_one_l
     assert out.returncode == 2 and said in out.stderr and "Traceback" not in out.stderr
 
 
-def test_ablation_rows_are_single_changes_that_build_valid_configs() -> None:
+@pytest.mark.parametrize(
+    ("task", "has_divergence_row"),
+    [(TaskConfig(), True), (TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4)), False)],
+    ids=["10x10-7-bits", "4x4-4-bits"],
+)
+def test_ablation_rows_are_single_changes_that_build_valid_configs(task: TaskConfig, has_divergence_row: bool) -> None:
     """Every row of `benchmarks/ablation.py` is a config the library accepts; the rows between the two recipes
-    each change one option (or one group), and the last is the target itself."""
+    each change one option (or one group) in which the recipes differ on the task, and the last is the target
+    itself. Where every word names a goal the recipe has no divergence, so no row turns it on."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from ablation import GROUPS, rows
-    from bitcomm.config import TaskConfig
-    from bitcomm.learn.config import make_train_config
-    from bitcomm.learn.recipes import RECIPES
+    from ablation import GROUPS, OBSERVED_ONLY, rows
+    from bitcomm.learn.config import make_train_config, recipe_values
 
     for base, target in (("paper", "reinforced"), ("reinforced", "paper")):
-        plan = rows(base, target)
+        plan = rows(base, target, task)
         assert plan[0] == (base, {}) and plan[-1][0] == target
-        differing = {k for k in RECIPES[target] if RECIPES[base].get(k) != RECIPES[target][k]}
-        assert set(plan[-1][1]) == differing
-        for name, change in plan[1:-1]:  # minibatches follow a batch made smaller than them
-            assert set(GROUPS.get(name, (name,))) <= set(change) <= {*GROUPS.get(name, (name,)), "minibatches"}
+        b, t = recipe_values(base, task), recipe_values(target, task)
+        assert set(plan[-1][1]) == {k for k in t if b.get(k) != t[k]}
+        assert ("message_divergence" in dict(plan)) is has_divergence_row
+        for name, change in plan[1:-1]:  # minibatches follow a batch made smaller than them, the observed head
+            coupled = {"minibatches", *(["message_reads"] if name in OBSERVED_ONLY else [])}  # an option needing it
+            assert set(GROUPS.get(name, (name,))) <= set(change) <= {*GROUPS.get(name, (name,)), *coupled}
         for _, change in plan:
-            make_train_config(base, TaskConfig(), **change)
+            make_train_config(base, task, **change)
 
 
 def test_every_recipe_names_the_same_options() -> None:

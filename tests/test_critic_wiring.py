@@ -20,11 +20,12 @@ from bitcomm.channel.core import bits_to_index
 from bitcomm.checkpoint import load_weights
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
-from bitcomm.learn.config import ENTROPY_WEIGHTS, make_train_config
+from bitcomm.learn.config import ENTROPY_WEIGHTS, make_train_config, spare_words
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator
 from bitcomm.learn.learner import Learner
 from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.learn.run import train
+from bitcomm.policies.heads import MAX_MARGINAL_BITS
 
 BITS = 2
 TWO = TaskConfig(EnvConfig(size=4, max_steps=12), ChannelConfig(bits=BITS))
@@ -269,6 +270,28 @@ def test_the_recipe_waits_for_the_protocol_only_where_the_oracle_can_play() -> N
         make_train_config("reinforced", TWO, senders_wait_below=1.2)
     with pytest.raises(ConfigError, match="invalid senders-wait-below=-1.0: must be a finite number >= 0"):
         make_train_config("reinforced", FOUR, senders_wait_below=-1.0)
+
+
+@pytest.mark.parametrize(
+    ("size", "bits", "spare"),
+    [(10, 7, True), (4, 5, True), (16, 9, True), (4, 4, False), (16, 8, False), (32, 10, False), (4, 3, False)],
+)
+def test_the_recipe_tells_nearby_goals_apart_only_where_the_channel_has_words_to_spare(
+    size: int, bits: int, spare: bool
+) -> None:
+    """The divergence and held words are the recipe's where 2^K exceeds the grid's cells (the paper's task: 128
+    words, 100 cells); where every word must name a goal, or the head reads more than the goal, both are off, and
+    an explicit value still applies."""
+    task = TaskConfig(EnvConfig(size=size), ChannelConfig(bits=bits))
+    cfg = make_train_config("reinforced", task)
+    assert (cfg.message_divergence, cfg.held_messages) == ((1.0, 0.25) if spare else (0.0, 0.0))
+    assert spare_words(task) is spare
+    reads_all = make_train_config("reinforced", task, message_reads="all")
+    assert (reads_all.message_divergence, reads_all.held_messages) == (0.0, 0.0)
+    for recipe in ("supervised", "paper"):
+        assert make_train_config(recipe, task).message_divergence == make_train_config(recipe, task).held_messages == 0
+    if bits <= MAX_MARGINAL_BITS:
+        assert make_train_config("reinforced", task, message_divergence=0.5, held_messages=0.1).held_messages == 0.1
 
 
 def test_greedy_senders_keep_their_fraction_of_the_run_where_a_batch_cannot_hold_it() -> None:

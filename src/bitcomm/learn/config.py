@@ -17,7 +17,7 @@ from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig
 from bitcomm.errors import ConfigError, bad_value, check_int, check_number, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
-from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, RECIPES, WIDE_MESSAGES
+from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, NO_SPARE_WORDS, RECIPES, WIDE_MESSAGES
 from bitcomm.policies.heads import MAX_MARGINAL_BITS, MESSAGE_HEADS, check_marginal_bits
 from bitcomm.policies.networks import ModelConfig
 from bitcomm.policies.reference import OraclePolicy
@@ -421,16 +421,34 @@ def oracle_refusal(task: TaskConfig) -> ConfigError | None:
     return None
 
 
-def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = None, **overrides: Any) -> TrainConfig:
-    """A TrainConfig from a recipe plus explicit options (None means "the recipe's value")."""
+def spare_words(task: TaskConfig) -> bool:
+    """Whether the channel has more words than the grid has goal cells (2^K > size^2, K at most
+    MAX_MARGINAL_BITS, where the bonus for telling nearby goals apart can be evaluated): where it has none, every
+    word must name a goal, and that bonus can only move a word two goals share onto a third's."""
+    bits = task.channel.bits
+    return bits <= MAX_MARGINAL_BITS and 2**bits > task.env.size**2
+
+
+def recipe_values(recipe: str, task: TaskConfig, message_reads: str | None = None) -> dict[str, Any]:
+    """A recipe's learning options on `task` (with `message_reads` where one is given over the recipe's): where
+    an option of the recipe cannot serve the task, what stands in for it. An option given explicitly is not
+    changed here, and is still refused where it cannot serve."""
     if recipe not in RECIPES:
         raise bad_value("recipe", recipe, f"choose one of {', '.join(RECIPES)}")
-    task = task or TaskConfig()
     values = dict(RECIPES[recipe])
     if values.get("entropy_message_marginal", 0.0) > 0 and task.channel.bits > MAX_MARGINAL_BITS:
-        values.update(WIDE_MESSAGES)  # an explicit --entropy-message-marginal is still refused there
+        values.update(WIDE_MESSAGES)
     if values.get("senders_wait_below", 0.0) > 0 and oracle_refusal(task) is not None:
-        values["senders_wait_below"] = 0.0  # no level to wait for; an explicit --senders-wait-below is still refused
+        values["senders_wait_below"] = 0.0  # no level to wait for
+    if not spare_words(task) or (message_reads or values.get("message_reads")) != "observed":
+        values.update(NO_SPARE_WORDS)
+    return values
+
+
+def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = None, **overrides: Any) -> TrainConfig:
+    """A TrainConfig from a recipe plus explicit options (None means "the recipe's value")."""
+    task = task or TaskConfig()
+    values = recipe_values(recipe, task, overrides.get("message_reads"))
     values.update({k: v for k, v in overrides.items() if v is not None})
     model = ModelConfig(**{k: values.pop(k) for k in list(values) if k in MODEL_OPTIONS})
     return TrainConfig(task=task, model=model, recipe=recipe, **values)
