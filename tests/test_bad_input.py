@@ -74,6 +74,8 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
     (ALL, "--greedy-senders"): {"0"},  # 0: off
     (ALL, "--greedy-senders-from"): {"0"},  # 0: from the first batch (the default recipe's greedy senders)
     (ALL, "--held-messages"): {"0"},  # 0: off
+    (ALL, "--held-messages-from"): {"0"},  # 0: from the first batch
+    (ALL, "--message-divergence-radius"): {"1000000000000"},  # beyond the grid: every pair of goals
     (ALL, "--staleness"): {"0"},  # 0: synchronous  # 0 or beyond max_steps: the task's own limit
     (ALL, "--keep-checkpoints"): {"1000000000000"},  # keep them all
     (ALL, "--held-out-every"): {"0", "1000000000000"},  # 0: never; huge: once, at the end

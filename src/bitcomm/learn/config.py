@@ -165,8 +165,9 @@ class TrainConfig:
     batch's columns after the greedy senders' ones (as many as are left where the two fractions fill a batch). With
     `message_divergence` 1, 0.25 brought greedy play within 1.05x of the oracle on 26 of 28 seeds of the paper's task
     (on 24 of them the divergence alone: 19); alone, on four of the default's misses, 2 of 4 (docs/tuning.md session
-    44). Off: tried as the default in session 45, held words cost at 16x16 (sampled play 2.7-2.9 steps longer than
-    the default's, paired; with the divergence 8-11), and the divergence costs greedy play at 4x4."""
+    44). On (0.25) in the `reinforced` recipe since session 49 where the channel has words to spare (`spare_words`);
+    off where every word names a goal, as at 16x16 with 8 bits, where held words from halfway cost sampled play 2.7-2.9
+    steps (session 45, before they waited for the protocol)."""
     held_messages_from: float = 0.5
     """The schedule's progress (0 to 1) from which `held_messages` plays its episodes."""
     senders_wait_below: float = 0.0
@@ -185,9 +186,11 @@ class TrainConfig:
     (docs/tuning.md sessions 37 and 43); the marginal bonus counts a shared word the same wherever the goals lie. An
     information term of the senders' own distributions, no target word, so a run stays pure. At 1 (radius 3) on the
     paper's task greedy play ended within 1.05x of the oracle on 19 of 24 seeds (the default: 10 of 16), with misses
-    of 1.31-1.51x on hedged bits, at about 0.82x the throughput: off (docs/tuning.md session 43). With
-    `held_messages` 0.25, 22 of the same 24 (session 44), and the 10x10 study's four techniques learn quicker; but at
-    4x4 (radius 3 counts 90 of the 120 pairs) it leaves greedy play longer on five seeds of six (session 45)."""
+    of 1.31-1.51x on hedged bits, at about 0.82x the throughput (docs/tuning.md session 43). With `held_messages`
+    0.25, 22 of the same 24 (session 44), 26 of 28 in all, and the 10x10 study's four techniques learn quicker. On
+    (1) in the `reinforced` recipe since session 49 where the channel has words to spare (`spare_words`): where every
+    word names a goal (4x4 with 4 bits, 16x16 with 8) it cost greedy play and sampled play (session 45), as a word two
+    goals share can only move onto a third's; after the words have formed it splits none (sessions 47 and 49)."""
     message_divergence_radius: int = 3
     """How far apart (Manhattan, in cells) two goals may be for `message_divergence` to count their pair; where a grid
     has more than 1,024 such pairs, a uniform draw of 1,024 of them enters each step."""
