@@ -40,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig  # noqa: E402
 from bitcomm.learn.config import recipe_values  # noqa: E402
+from bitcomm.learn.recipes import NO_SPARE_WORDS  # noqa: E402
 from bitcomm.studies.compare import read_curve  # noqa: E402
 from run_marks import parse_marks, reached_cell, rolling_at_marks  # noqa: E402  (benchmarks/ is not a package)
 from solve import solve_seed  # noqa: E402
@@ -48,8 +49,9 @@ GROUPS: dict[str, tuple[str, ...]] = {"ppo_reuse": ("epochs", "minibatches", "cl
 """Options changed together: a clip range means nothing without reuse, and reuse is the epochs x minibatches."""
 
 
-OBSERVED_ONLY = ("message_divergence", "held_messages")
-"""Options that need a message head reading only the observed goal (`message_reads` `observed`)."""
+OBSERVED_ONLY = tuple(NO_SPARE_WORDS)
+"""Options that need a message head reading only the observed goal (`message_reads` `observed`): those a recipe
+gives way with where its head reads more (`recipes.NO_SPARE_WORDS`)."""
 
 
 def _fit(change: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
