@@ -1,13 +1,17 @@
-"""Does keeping the checkpoint that plays a held-out set best (`--held-out-every`) lift greedy play?
+"""How many seeds play greedily within 1.05x the oracle at the end of training, and does keeping the checkpoint
+that plays a held-out set best (`--held-out-every`) lift greedy play?
 
-Trains S seeds of a recipe (improved + bitwise under the default unless told otherwise) with a held-out
-evaluation every `--held-out-every` episodes, then plays each run's latest checkpoint and its best by the
-held-out set (`checkpoints/best.json`) greedily on `--eval-episodes` episodes of seed 12345, a set that
-neither training nor the held-out evaluation plays, and reports per seed and over seeds their mean episode
-length against 1.05x the oracle's on the same episodes (issue 16's greedy target). A seed already measured
-in `--out` (`seed<N>.json`) is kept and an unfinished run resumes, so a study stopped part way goes on where
-it stopped. The last line printed is one JSON object.
+Trains S seeds of a recipe (improved + bitwise under the default unless told otherwise), then plays each run's
+latest checkpoint greedily and sampled, and its best by the held-out set (`checkpoints/best.json`) greedily, on
+`--eval-episodes` episodes of seed 12345, a set that neither training nor the held-out evaluation plays, and reports
+per seed and over seeds their mean episode length against 1.05x the oracle's on the same episodes (issue 16's
+greedy target). `--held-out-every 0` trains with no held-out evaluation (the default recipe's runs, as `bitcomm
+train` makes them) and measures the latest checkpoint only. A seed already measured in `--out` (`seed<N>.json`) is
+kept and an unfinished run resumes, so a study stopped part way goes on where it stopped. The last line printed is
+one JSON object.
 
+    python benchmarks/greedy_selection.py --seeds 28 --jobs 2 --held-out-every 0 --eval-episodes 2000 \\
+        --out runs/greedy-seeds                                   # the README's count of seeds within 1.05x
     python benchmarks/greedy_selection.py --seeds 16 --jobs 2 --episodes 200000 --held-out-every 8192 \\
         --eval-episodes 10000 --out runs/greedy-selection
 """
@@ -47,8 +51,14 @@ def _config(args: dict[str, Any], seed: int) -> Any:
     )
 
 
+def measured(args: dict[str, Any]) -> tuple[str, ...]:
+    """The checkpoints a seed is measured at: the best by the held-out set only where there is one."""
+    return ("latest", "best") if args["held_out_every"] else ("latest",)
+
+
 def measure_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
-    """Train one seed (or resume it), then play its latest and best checkpoints greedily on the test set."""
+    """Train one seed (or resume it), then play its checkpoints greedily, and the latest sampled too, on the test
+    set."""
     import torch
 
     from bitcomm.learn.run import train
@@ -63,7 +73,7 @@ def measure_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
     run = out / f"seed{seed}"
     train(_config(args, seed), run, resume=has_checkpoint(run), progress=False)
     result: dict[str, Any] = {"seed": seed, "run": str(run)}
-    for which in ("latest", "best"):
+    for which in measured(args):
         pointer = run / "checkpoints" / f"{which}.json"
         played = evaluate_checkpoint(pointer, args["eval_episodes"], EVAL_SEED, greedy=True)
         result[which] = {
@@ -71,6 +81,8 @@ def measure_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
             "greedy": round(played.mean_episode_length, 4),
             "stalled": round(1.0 - played.success_rate, 5),
         }
+    sampled = evaluate_checkpoint(run / "checkpoints" / "latest.json", args["eval_episodes"], EVAL_SEED)
+    result["latest"]["sampled"] = round(sampled.mean_episode_length, 4)
     tmp = result_file.with_suffix(".tmp")
     tmp.write_text(json.dumps(result) + "\n")
     tmp.replace(result_file)
@@ -78,15 +90,22 @@ def measure_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
 
 
 def over_seeds(results: list[dict[str, Any]], threshold: float) -> dict[str, Any]:
-    """How many seeds each checkpoint brings within the target, the median greedy length, and how the best
-    compares with the latest seed by seed."""
+    """How many seeds each checkpoint brings within the target, the median greedy length (and the latest's
+    sampled), and how the best compares with the latest seed by seed where there is a best."""
     summary: dict[str, Any] = {}
     for which in ("latest", "best"):
+        if not all(which in r for r in results):
+            continue
         greedy = [r[which]["greedy"] for r in results]
         summary[which] = {
             "within": f"{sum(g <= threshold for g in greedy)}/{len(greedy)}",
             "median_greedy": statistics.median(greedy),
         }
+    sampled = [r["latest"]["sampled"] for r in results if "sampled" in r["latest"]]
+    if sampled:
+        summary["latest"]["median_sampled"] = statistics.median(sampled)
+    if "best" not in summary:
+        return summary
     pairs = [(r["best"]["greedy"], r["latest"]["greedy"]) for r in results]
     summary["best_against_latest"] = {
         "better": sum(b < la for b, la in pairs),
@@ -104,7 +123,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_seed_flags(ap)
     ap.add_argument("--episodes", type=int, default=200_000, help="training budget per seed")
-    ap.add_argument("--held-out-every", type=int, default=8192)
+    ap.add_argument("--held-out-every", type=int, default=8192, help="0: no held-out set; the latest only")
     ap.add_argument("--held-out-episodes", type=int, default=1000)
     ap.add_argument("--eval-episodes", type=int, default=10_000, help="test episodes (seed 12345) per checkpoint")
     ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once")
@@ -112,8 +131,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("runs/greedy-selection"))
     a = ap.parse_args()
     try:  # bad input is one line before any seed starts
-        for name in ("seeds", "jobs", "threads", "eval_episodes", "episodes", "held_out_every"):
+        for name in ("seeds", "jobs", "threads", "eval_episodes", "episodes"):
             check_int(name, getattr(a, name), 1)
+        check_int("held_out_every", a.held_out_every, 0)
         check_int("first_seed", a.first_seed, 0)
         if a.bits is None:
             from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
@@ -141,7 +161,8 @@ def main() -> None:
                 f"seed {r['seed']}{' (kept)' if r.get('kept') else ''}: "
                 + "  ".join(
                     f"{w} ({r[w]['episodes']} ep): greedy {r[w]['greedy']:.2f}, {100 * r[w]['stalled']:.2f}% stalled"
-                    for w in ("latest", "best")
+                    + (f", sampled {r[w]['sampled']:.2f}" if "sampled" in r[w] else "")
+                    for w in measured(args)
                 ),
                 flush=True,
             )

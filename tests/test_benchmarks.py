@@ -385,8 +385,16 @@ def test_greedy_selection_measures_latest_and_best_and_keeps_measured_seeds(tmp_
     assert sum(summary["over_seeds"]["best_against_latest"].values()) == 2
     again = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
     assert again.returncode == 0 and again.stdout.count("(kept)") == 2, again.stderr
-    bad = subprocess.run([*argv[:2], "--held-out-every", "0"], cwd=ROOT, capture_output=True, text=True, env=env)
-    assert bad.returncode == 2 and "held-out-every=0" in bad.stderr and "Traceback" not in bad.stderr
+    # without a held-out set (the default recipe's runs): the latest checkpoint only, greedy and sampled
+    plain = [*argv[:-1], str(tmp_path / "plain")]
+    plain[plain.index("--held-out-every") + 1] = "0"
+    out = subprocess.run(plain, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    assert all(set(r) == {"seed", "run", "latest"} and r["latest"]["sampled"] >= 1 for r in summary["seeds"])
+    assert set(summary["over_seeds"]) == {"latest"} and summary["over_seeds"]["latest"]["median_sampled"] >= 1
+    bad = subprocess.run([*argv[:2], "--held-out-every", "-1"], cwd=ROOT, capture_output=True, text=True, env=env)
+    assert bad.returncode == 2 and "held-out-every=-1" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_run_marks_reads_loose_runs_as_the_study_tables_do(tmp_path: Path) -> None:
