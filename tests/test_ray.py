@@ -5,6 +5,7 @@ get one line."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import signal
@@ -280,15 +281,93 @@ def test_a_malformed_address_gets_one_line(address: Any, tmp_path: Path) -> None
             train(tiny_config(workers=1), tmp_path / "run", progress=False, address=address)
 
 
-def test_an_address_check_passes_where_something_listens_and_for_auto() -> None:
+def test_an_address_check_passes_where_ray_or_another_grpc_server_answers_and_for_auto(
+    cluster: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ray's GCS and client servers are gRPC: they answer HTTP/2's preface with a SETTINGS frame."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import grpc
+
     from bitcomm.errors import ConfigError
     from bitcomm.learn.ray_backend import check_address
 
+    check_address(cluster)  # the GCS, as `ray start --head` prints it
+    server = grpc.server(ThreadPoolExecutor(max_workers=1))
+    port = server.add_insecure_port("127.0.0.1:0")
+    server.start()
+    try:
+        for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}", f"localhost:{port}", None, "auto"):
+            check_address(address)
+    finally:
+        server.stop(None)
+    with pytest.raises(ConfigError, match=r"cannot reach a Ray cluster there \(.*nohost\.invalid:6379"):
+        check_address("nohost.invalid:6379")  # a name that does not resolve
+    with listener(None) as port:  # with TLS only the connection is tried: this probe makes no TLS handshake
+        monkeypatch.setenv("RAY_USE_TLS", "1")
+        check_address(f"127.0.0.1:{port}")
+
+
+@contextlib.contextmanager
+def listener(reply: bytes | None) -> Iterator[int]:
+    """A local TCP port where something that is not Ray listens: silent (None), or reading a request and
+    answering `reply` before it hangs up."""
     with socket.socket() as server:
         server.bind(("127.0.0.1", 0))
         server.listen()
-        port = server.getsockname()[1]
-        for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}", f"localhost:{port}", None, "auto"):
-            check_address(address)
-    with pytest.raises(ConfigError, match=r"cannot reach a Ray cluster there \(.*nohost\.invalid:6379"):
-        check_address("nohost.invalid:6379")  # a name that does not resolve
+        if reply is not None:
+
+            def answer() -> None:
+                with contextlib.suppress(OSError):
+                    while True:
+                        conn, _ = server.accept()
+                        with conn:
+                            conn.recv(1024)
+                            conn.sendall(reply)
+
+            threading.Thread(target=answer, daemon=True).start()
+        try:
+            yield int(server.getsockname()[1])
+        finally:
+            with contextlib.suppress(OSError):
+                server.shutdown(socket.SHUT_RDWR)  # wakes the thread's accept
+
+
+def test_an_address_where_a_silent_listener_waits_gets_one_line_within_the_timeout() -> None:
+    """Ray hung for many minutes on such an address; the TCP connection alone passed the old probe."""
+    from bitcomm.errors import ConfigError
+    from bitcomm.learn.ray_backend import check_address
+
+    with listener(None) as port:
+        address = f"127.0.0.1:{port}"
+        t0 = time.monotonic()
+        with pytest.raises(ConfigError) as err:
+            check_address(address, timeout=1.0)
+        assert time.monotonic() - t0 < 5
+    line = str(err.value)
+    assert "\n" not in line
+    prefix = f"invalid address='{address}': something listens there but does not answer as a Ray cluster (gRPC) does: "
+    assert line.startswith(f"{prefix}127.0.0.1:{port}: no answer in time"), line
+
+
+def test_an_address_where_a_web_server_answers_gets_one_line_quickly(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An HTTP/1 server answers the probe at once: one line, before Ray is asked and the run folder is made."""
+
+    def no_init(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("ray.init was called")
+
+    monkeypatch.setattr(ray, "init", no_init)
+    out = tmp_path / "run"
+    argv = ["train", *TINY, "--episodes", "128", "--backend", "ray", "--workers", "1", "--threads", "1"]
+    with listener(b"HTTP/1.1 400 Bad Request\r\n\r\n") as port:
+        address = f"ray://127.0.0.1:{port}"
+        t0 = time.monotonic()
+        code = main([*argv, "--address", address, "--out", str(out)])
+        assert time.monotonic() - t0 < 20
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    error = f"bitcomm train: error: invalid address='{address}': something listens there but does not answer as a"
+    assert lines[0].startswith(f"{error} Ray cluster (gRPC) does: 127.0.0.1:{port}: it answered 'HTTP/1.1 '"), lines
+    assert not out.exists()

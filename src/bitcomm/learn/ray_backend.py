@@ -122,15 +122,19 @@ def join(rollouts: list[dict[str, np.ndarray]]) -> Rollout:
 
 
 PROBE_S = 5.0
-"""How long `check_address` waits for a TCP connection to an explicit `HOST:PORT` before refusing it: Ray itself
-retries an address where nothing listens for many minutes (20 tries of about 40 s, each logging "Failed to
-connect to GCS")."""
+"""How long `check_address` gives an explicit `HOST:PORT` to accept a TCP connection and answer as gRPC before
+refusing it: Ray itself retries an address where nothing listens for many minutes (20 tries of about 40 s, each
+logging "Failed to connect to GCS"), and hangs as long where something that is not Ray listens."""
+GRPC_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+"""HTTP/2's client preface and an empty SETTINGS frame: a gRPC server (Ray's GCS and client servers) answers
+with a SETTINGS frame at once; a silent listener or an HTTP/1 server does not."""
 
 
 def check_address(address: str | None, timeout: float = PROBE_S) -> None:
     """One line, within about `timeout` seconds, unless `address` is None, `auto` or a `HOST:PORT` (or
-    `ray://HOST:PORT`) where something accepts a TCP connection: Ray would wait for it for many minutes.
-    Starts nothing, so a caller may check before it makes the run folder."""
+    `ray://HOST:PORT`) where a gRPC server answers (a TCP connection is enough with `RAY_USE_TLS`, whose
+    handshake this does not make): Ray would wait for anything else for many minutes. Starts nothing, so a
+    caller may check before it makes the run folder."""
     if address is None:
         return
     if not isinstance(address, str):
@@ -141,16 +145,51 @@ def check_address(address: str | None, timeout: float = PROBE_S) -> None:
     if parts is None:
         raise bad_value("address", address, ADDRESS_FORMS)
     host, port = parts
+    tls = os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true")
     deadline = time.monotonic() + timeout
-    reasons = []
+    reasons, listens = [], False
     for candidate in _candidates(host):
         try:
-            socket.create_connection((candidate, port), timeout=max(0.1, deadline - time.monotonic())).close()
-            return
+            with socket.create_connection((candidate, port), timeout=_left(deadline)) as sock:
+                answer = "" if tls else _not_grpc(sock, deadline)
         except OSError as err:
             reasons.append(f"{candidate}:{port}: {err.strerror or err or type(err).__name__}")
+            continue
+        if not answer:
+            return
+        reasons.append(f"{candidate}:{port}: {answer}")
+        listens = True
     why = "; ".join(reasons)
+    if listens:
+        raise bad_value(
+            "address", address, f"something listens there but does not answer as a Ray cluster (gRPC) does: {why}"
+        )
     raise bad_value("address", address, f"cannot reach a Ray cluster there (nothing accepts a connection: {why})")
+
+
+def _left(deadline: float) -> float:
+    """Seconds to `deadline`, at least a little, so a later candidate still gets a try."""
+    return max(0.1, deadline - time.monotonic())
+
+
+def _not_grpc(sock: socket.socket, deadline: float) -> str:
+    """'' if the server on `sock` answers `GRPC_HELLO` with a SETTINGS frame before `deadline`, else what it did."""
+    reply, silence = b"", "it hung up"
+    try:
+        sock.sendall(GRPC_HELLO)
+        while len(reply) < 9:
+            sock.settimeout(_left(deadline))
+            chunk = sock.recv(9 - len(reply))
+            if not chunk:
+                break
+            reply += chunk
+    except TimeoutError:
+        silence = "no answer in time"
+    except OSError as err:
+        silence = err.strerror or str(err) or type(err).__name__
+    if len(reply) == 9 and reply[3] == 0x04:
+        return ""
+    return f"it answered {reply.decode('latin-1')!r}" if reply else silence
 
 
 def _candidates(host: str) -> Iterator[str]:
