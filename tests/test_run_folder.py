@@ -464,6 +464,50 @@ def test_ctrl_c_or_sigterm_saves_the_batch_it_stopped_after_and_resume_goes_on(
     assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] == 960
 
 
+def test_a3c_stopped_as_timeout_does_saves_every_batch_leaks_nothing_and_resumes(tmp_path: Path, capsys) -> None:
+    """`timeout` sends SIGTERM to the run, then to its process group (the workers, and the run again): the workers
+    end after their batch, the main process saves and unlinks its semaphores (killed, it left the resource
+    tracker's "leaked semaphore" warning)."""
+    out = tmp_path / "a3c"
+    args = ["train", *QUICK[:-1], "3600", "--mode", "a3c", "--workers", "2", "--episodes", "960"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bitcomm.cli", *args, "--out", str(out)],
+        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    metrics, deadline = out / "metrics.csv", time.monotonic() + 90
+    while proc.poll() is None and time.monotonic() < deadline:
+        if metrics.exists() and len(metrics.read_text().splitlines()) > 2:  # header + 2 batches
+            break
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGTERM)
+    os.killpg(proc.pid, signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)  # till the resource tracker, which would warn, closes stderr too
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "leaked" not in err and "Traceback" not in err, err
+    played = json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"]
+    assert played == (len(metrics.read_text().splitlines()) - 1) * 16 and f"stopped after {played} episodes" in err
+    rc, err = cli(capsys, *args[:-1], str(played + 32), "--out", str(out), "--resume")
+    assert rc == 0, err
+    assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] >= played + 32
+
+
+def test_a_stop_signal_repeated_at_once_is_one_request(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`timeout`'s second copy of its signal (`REPEAT_S`) must not stop the run unsaved; a later one does."""
+    from bitcomm.learn import run_folder
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with run_folder.stop_after_batch() as stop_asked:
+            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(signal.SIGINT)
+            assert stop_asked() == signal.SIGINT
+            monkeypatch.setattr(run_folder, "REPEAT_S", 0.0)
+            with pytest.raises(KeyboardInterrupt):
+                signal.raise_signal(signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def test_a_study_worker_leaves_sigterm_to_its_parent() -> None:
     """`bitcomm compare` stops its runs with SIGTERM at once; only a process started as a program takes it over."""
     import multiprocessing

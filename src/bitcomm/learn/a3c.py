@@ -12,14 +12,22 @@ moments also live in shared memory (the classic PyTorch A3C pattern). Each worke
 Episodes are claimed from a shared counter before they are played, so the budget is never exceeded
 by more than one batch per worker. The main process only logs and checkpoints (same folder layout
 as sync mode). Runs are seeded but, being asynchronous, not reproducible bit for bit.
+
+Ctrl-C or SIGTERM stops the run as sync mode's (`stop_after_batch`): the main process asks the workers to
+stop after the batch they are on, logs those batches, saves them and exits through its own cleanup, which
+unlinks the lock's and queue's semaphores (killed outright, it left them to the resource tracker's "leaked
+semaphore" warning). The workers leave both signals to the main process, as the resource tracker does.
 """
 
 from __future__ import annotations
 
+import contextlib
 import queue as queue_mod
+import signal
+import sys
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +43,7 @@ from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
+    Stopped,
     checkpoint_weights,
     finite_or_stop,
     learner_state,
@@ -42,9 +51,14 @@ from bitcomm.learn.run_folder import (
     prepare,
     restore_learner,
     save_run_checkpoint,
+    stop_after_batch,
     write_config,
 )
 from bitcomm.policies.denormals import flush_denormals
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""What `stop_after_batch` takes in the main process: Ctrl-C reaches the whole process group, and so does
+`timeout`'s SIGTERM; a worker they killed mid-batch could die holding the lock that the final save takes."""
 
 
 def _grouped_params(groups: list[dict[str, Any]]) -> list[torch.Tensor]:
@@ -106,6 +120,28 @@ class SharedStep:
             p.grad = None
 
 
+@contextlib.contextmanager
+def _deaf_children() -> Iterator[None]:
+    """Processes started inside begin with `STOP_SIGNALS` blocked (a signal mask outlives exec), so that a
+    stop signal cannot kill a worker while it starts, before `_leave_stop_to_main`; here they wait till after."""
+    if not hasattr(signal, "pthread_sigmask"):  # Windows: no process groups to signal
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+def _leave_stop_to_main() -> None:
+    """In a worker: ignore `STOP_SIGNALS`; the main process stops it after its batch (or kills it)."""
+    for s in STOP_SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)  # a signal pending from the start is dropped
+
+
 @torch.no_grad()
 def pull(local: Sequence[torch.Tensor], shared: Sequence[torch.Tensor]) -> None:
     for lp, sp in zip(local, shared, strict=True):
@@ -122,7 +158,9 @@ def _worker(
     next_batch: Any,
     results: Any,
     formed: Any,
+    stop: Any,
 ) -> None:
+    _leave_stop_to_main()
     try:
         from bitcomm.learn.learner import Learner
         from bitcomm.learn.rollout import Collector
@@ -145,7 +183,7 @@ def _worker(
                 results.cancel_join_thread()
                 return
             with lock:
-                if claimed.value >= cfg.episodes:
+                if claimed.value >= cfg.episodes or stop.value:
                     break
                 claimed_before = claimed.value
                 claimed.value += cfg.num_envs
@@ -195,11 +233,14 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     claimed = ctx.Value("q", prog.episodes, lock=False)
     next_batch = ctx.Value("q", start_batch, lock=False)
     formed = ctx.Value("d", _or_unset(learner.senders_wait.start), lock=False)  # SendersWait.start, -1: not yet
+    stop = ctx.Value("b", 0, lock=False)  # 1: the main process was asked to stop
     results = ctx.Queue()
     shared = (learner.policy, learner.critic, learner.codebook)
     procs = [
         ctx.Process(
-            target=_worker, args=(w, cfg, shared, states, lock, claimed, next_batch, results, formed), daemon=True
+            target=_worker,
+            args=(w, cfg, shared, states, lock, claimed, next_batch, results, formed, stop),
+            daemon=True,
         )
         for w in range(cfg.workers)
     ]
@@ -219,10 +260,15 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     t_start, wall0 = time.perf_counter(), prog.wall_s
     last_save = time.monotonic()
     done: set[int] = set()
+    stopping = contextlib.ExitStack()
     try:
-        for p in procs:
-            p.start()
+        stop_asked = stopping.enter_context(stop_after_batch())
+        with _deaf_children():
+            for p in procs:
+                p.start()
         while len(done) < len(procs):
+            if stop_asked() is not None:  # the workers end after the batch they are on
+                stop.value = 1
             try:
                 msg = results.get(timeout=1.0)
             except queue_mod.Empty:
@@ -257,16 +303,25 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 last_save = time.monotonic()
         for p in procs:
             p.join()
-        return save()
+        path = save()
+        signum = stop_asked()
+        if signum is not None:  # as `train_batches`
+            bar.close()
+            name = signal.Signals(signum).name
+            print(f"stopped after {prog.episodes} episodes on {name}, saved as {path}; --resume goes on",
+                  file=sys.stderr)  # fmt: skip
+            raise Stopped(signum)
+        return path
     finally:
         for p in procs:
             if p.pid is None:  # never started (start() itself failed)
                 continue
-            if p.is_alive():
-                p.terminate()
+            if p.is_alive():  # after an error or a second signal: it ignores SIGTERM (`_leave_stop_to_main`)
+                p.kill()
             p.join(timeout=5)
         bar.close()
         logger.close()
+        stopping.close()
 
 
 def _or_unset(start: float | None) -> float:

@@ -567,17 +567,27 @@ def _stoppable_signals() -> list[signal.Signals]:
     return wanted
 
 
+REPEAT_S = 0.5
+"""A stop signal repeated sooner than this is the first one again: `timeout` signals its command, then the
+command's process group, which holds the command too; a loaded machine can run the handler in between."""
+
+
 @contextlib.contextmanager
 def stop_after_batch() -> Iterator[Callable[[], int | None]]:
     """Ctrl-C or SIGTERM while training asks the loop to stop after the batch it is on, so that the run can
     save it and lose nothing (without this, up to `checkpoint_seconds` of training); the same signal again
-    stops at once. Yields a function that returns the signal asked for, or None."""
+    (`REPEAT_S` or more later) stops at once. Yields a function that returns the signal asked for, or None."""
     asked: list[int] = []
     taken = {s: signal.getsignal(s) for s in _stoppable_signals()}
+    first: dict[int, float] = {}
 
     def ask(signum: int, frame: object) -> None:
-        asked.append(signum)
-        signal.signal(signum, taken[signal.Signals(signum)])
+        if signum not in first:
+            first[signum] = time.monotonic()
+            asked.append(signum)
+        elif time.monotonic() - first[signum] >= REPEAT_S:  # the previous handler: KeyboardInterrupt, or death
+            signal.signal(signum, taken[signal.Signals(signum)])
+            signal.raise_signal(signum)
 
     for s in taken:
         signal.signal(s, ask)
