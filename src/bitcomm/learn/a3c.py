@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import queue as queue_mod
 import signal
-import sys
 import time
 import traceback
 from collections.abc import Iterator, Sequence
@@ -43,7 +42,6 @@ from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
-    Stopped,
     checkpoint_weights,
     finite_or_stop,
     learner_state,
@@ -52,6 +50,7 @@ from bitcomm.learn.run_folder import (
     restore_learner,
     save_run_checkpoint,
     stop_after_batch,
+    stopped,
     write_config,
 )
 from bitcomm.policies.denormals import flush_denormals
@@ -260,68 +259,66 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     t_start, wall0 = time.perf_counter(), prog.wall_s
     last_save = time.monotonic()
     done: set[int] = set()
-    stopping = contextlib.ExitStack()
-    try:
-        stop_asked = stopping.enter_context(stop_after_batch())
-        with _deaf_children():
-            for p in procs:
-                p.start()
-        while len(done) < len(procs):
-            if stop_asked() is not None:  # the workers end after the batch they are on
-                stop.value = 1
-            try:
-                msg = results.get(timeout=1.0)
-            except queue_mod.Empty:
-                dead = [w for w, p in enumerate(procs) if p.exitcode not in (None, 0) and w not in done]
-                if dead:
-                    raise RuntimeError(f"a3c worker {dead[0]} died (exit code {procs[dead[0]].exitcode})") from None
-                continue
-            if msg[0] == "error":
+    with stop_after_batch() as stop_asked:  # till the workers are gone: a signal meanwhile is a request
+        try:
+            with _deaf_children():
+                for p in procs:
+                    p.start()
+            while len(done) < len(procs):
+                if stop_asked() is not None:  # the workers end after the batch they are on
+                    stop.value = 1
+                try:
+                    msg = results.get(timeout=1.0)
+                except queue_mod.Empty:
+                    dead = [w for w, p in enumerate(procs) if p.exitcode not in (None, 0) and w not in done]
+                    if dead:
+                        raise RuntimeError(f"a3c worker {dead[0]} died (exit code {procs[dead[0]].exitcode})") from None
+                    continue
+                if msg[0] == "error":
+                    with lock:
+                        if first_nonfinite(**checkpoint_weights(learner)):  # a worker failed on NaN weights: say so
+                            finite_or_stop(out, learner, prog.episodes)
+                    raise RuntimeError(f"a3c worker {msg[1]} failed:\n{msg[2]}")
+                if msg[0] == "done":
+                    done.add(msg[1])
+                    continue
+                _, _, length, team_return, success, sent_greedy, stats = msg
+                prog.wall_s = wall0 + time.perf_counter() - t_start
+                learner.senders_wait.watch(prog.rolling_length, cfg.schedule_progress(prog.episodes))  # as sync's
+                formed.value = _or_unset(learner.senders_wait.start)
+                row = prog.add_batch(length, team_return, int(length.sum()) * n, sent_greedy=sent_greedy)
+                row.update({"charts/success": float(success.mean()), **stats})
+                # the main process watches, not the worker whose stats these are
+                row.update(learner.senders_wait.figures())
+                # between two steps, as `save` reads: unlocked, this check once found a NaN that no worker's step
+                # had before or after it (docs/tuning.md session 48)
                 with lock:
-                    if first_nonfinite(**checkpoint_weights(learner)):  # a worker failed on NaN weights: say so
-                        finite_or_stop(out, learner, prog.episodes)
-                raise RuntimeError(f"a3c worker {msg[1]} failed:\n{msg[2]}")
-            if msg[0] == "done":
-                done.add(msg[1])
-                continue
-            _, _, length, team_return, success, sent_greedy, stats = msg
-            prog.wall_s = wall0 + time.perf_counter() - t_start
-            learner.senders_wait.watch(prog.rolling_length, cfg.schedule_progress(prog.episodes))  # as sync's
-            formed.value = _or_unset(learner.senders_wait.start)
-            row = prog.add_batch(length, team_return, int(length.sum()) * n, sent_greedy=sent_greedy)
-            row.update({"charts/success": float(success.mean()), **stats})
-            row.update(learner.senders_wait.figures())  # the main process watches, not the worker whose stats these are
-            # between two steps, as `save` reads: unlocked, this check once found a NaN that no worker's step
-            # had before or after it (docs/tuning.md session 48)
-            with lock:
-                finite_or_stop(out, learner, prog.episodes)
-            logger.log(row)
-            bar.update(min(len(length), max(0, bar.total - bar.n)))  # workers overshoot the budget: the bar stops at it
-            bar.set_postfix(len=f"{row['charts/episode_length_rolling']:.1f}", ret=f"{np.mean(prog.recent_return):.2f}")
-            if time.monotonic() - last_save >= cfg.checkpoint_seconds and claimed.value < cfg.episodes:
-                save()
-                last_save = time.monotonic()
-        for p in procs:
-            p.join()
-        path = save()
-        signum = stop_asked()
-        if signum is not None:  # as `train_batches`
+                    finite_or_stop(out, learner, prog.episodes)
+                logger.log(row)
+                # workers overshoot the budget: the bar stops at it
+                bar.update(min(len(length), max(0, bar.total - bar.n)))
+                rolling, recent = row["charts/episode_length_rolling"], np.mean(prog.recent_return)
+                bar.set_postfix(len=f"{rolling:.1f}", ret=f"{recent:.2f}")
+                if time.monotonic() - last_save >= cfg.checkpoint_seconds and claimed.value < cfg.episodes:
+                    save()
+                    last_save = time.monotonic()
+            for p in procs:
+                p.join()
+            path = save()
+            signum = stop_asked()
+            if signum is not None:  # as `train_batches`
+                bar.close()
+                raise stopped(signum, prog.episodes, path)
+            return path
+        finally:
+            for p in procs:
+                if p.pid is None:  # never started (start() itself failed)
+                    continue
+                if p.is_alive():  # after an error or a second signal: it ignores SIGTERM (`_leave_stop_to_main`)
+                    p.kill()
+                p.join(timeout=5)
             bar.close()
-            name = signal.Signals(signum).name
-            print(f"stopped after {prog.episodes} episodes on {name}, saved as {path}; --resume goes on",
-                  file=sys.stderr)  # fmt: skip
-            raise Stopped(signum)
-        return path
-    finally:
-        for p in procs:
-            if p.pid is None:  # never started (start() itself failed)
-                continue
-            if p.is_alive():  # after an error or a second signal: it ignores SIGTERM (`_leave_stop_to_main`)
-                p.kill()
-            p.join(timeout=5)
-        bar.close()
-        logger.close()
-        stopping.close()
+            logger.close()
 
 
 def _or_unset(start: float | None) -> float:

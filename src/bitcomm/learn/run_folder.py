@@ -552,6 +552,14 @@ class Stopped(KeyboardInterrupt):
         self.exit_code = 128 + signum
 
 
+def stopped(signum: int, episodes: int, path: Path) -> Stopped:
+    """`Stopped` for a run saved at `path` after `episodes`, once its line is printed: what a trainer raises when
+    `stop_after_batch` asked it to stop."""
+    name = signal.Signals(signum).name
+    print(f"stopped after {episodes} episodes on {name}, saved as {path}; --resume goes on", file=sys.stderr)
+    return Stopped(signum)
+
+
 def _stoppable_signals() -> list[signal.Signals]:
     """The signals a training loop may take over: SIGINT where Python's own handler has it (not where it is
     ignored, as in a background job, or another handler took it), and SIGTERM (what `kill PID` and a cluster
@@ -643,10 +651,7 @@ def train_batches(
                 if signum is not None:
                     path = save(rank)
                     bar.close()
-                    name = signal.Signals(signum).name
-                    print(f"stopped after {prog.episodes} episodes on {name}, saved as {path}; --resume goes on",
-                          file=sys.stderr)  # fmt: skip
-                    raise Stopped(signum)
+                    raise stopped(signum, prog.episodes, path)
                 if prog.episodes >= cfg.episodes:
                     return save(rank)
                 if score is not None or time.monotonic() - last_save >= cfg.checkpoint_seconds:
