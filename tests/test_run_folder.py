@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -435,6 +436,21 @@ def test_kill_9_then_resume_loses_at_most_one_interval(tmp_path: Path, capsys) -
     assert leftovers(out) == [] and json.loads(latest.read_text())["episodes"] == 320
 
 
+def run_until_logged(args: list[str], out: Path, batches: int, **popen: Any) -> subprocess.Popen[str]:
+    """`bitcomm ARGS --out OUT` in a process of its own (stderr piped), returned once it has logged `batches`
+    batches, ended, or run 90 s: a run to stop with a signal part way."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bitcomm.cli", *args, "--out", str(out)],
+        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **popen,
+    )  # fmt: skip
+    metrics, deadline = out / "metrics.csv", time.monotonic() + 90
+    while proc.poll() is None and time.monotonic() < deadline:
+        if metrics.exists() and len(metrics.read_text().splitlines()) > batches:  # the header and the batches
+            break
+        time.sleep(0.01)
+    return proc
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 def test_ctrl_c_or_sigterm_saves_the_batch_it_stopped_after_and_resume_goes_on(
     tmp_path: Path, capsys, signum: signal.Signals
@@ -442,16 +458,9 @@ def test_ctrl_c_or_sigterm_saves_the_batch_it_stopped_after_and_resume_goes_on(
     """Ctrl-C, or the SIGTERM that `kill PID` and a scheduler's time limit send, loses no batch played."""
     out = tmp_path / "interrupted"
     args = ["train", *QUICK[:-1], "3600", "--episodes", "960"]  # no periodic checkpoint: only the stop saves
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bitcomm.cli", *args, "--out", str(out)],
-        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, even under CI
-    )  # fmt: skip
-    metrics, deadline = out / "metrics.csv", time.monotonic() + 90
-    while proc.poll() is None and time.monotonic() < deadline:
-        if metrics.exists() and len(metrics.read_text().splitlines()) > 3:  # header + 3 batches
-            break
-        time.sleep(0.01)
+    # SIGINT's default handler, as in a terminal, even under CI
+    proc = run_until_logged(args, out, 3, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    metrics = out / "metrics.csv"
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 128 + signum, err  # as a shell reports a process the signal ended
@@ -470,15 +479,8 @@ def test_a3c_stopped_as_timeout_does_saves_every_batch_leaks_nothing_and_resumes
     tracker's "leaked semaphore" warning)."""
     out = tmp_path / "a3c"
     args = ["train", *QUICK[:-1], "3600", "--mode", "a3c", "--workers", "2", "--episodes", "960"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bitcomm.cli", *args, "--out", str(out)],
-        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
-    )  # fmt: skip
-    metrics, deadline = out / "metrics.csv", time.monotonic() + 90
-    while proc.poll() is None and time.monotonic() < deadline:
-        if metrics.exists() and len(metrics.read_text().splitlines()) > 2:  # header + 2 batches
-            break
-        time.sleep(0.01)
+    proc = run_until_logged(args, out, 2, start_new_session=True)
+    metrics = out / "metrics.csv"
     proc.send_signal(signal.SIGTERM)
     os.killpg(proc.pid, signal.SIGTERM)
     _, err = proc.communicate(timeout=60)  # till the resource tracker, which would warn, closes stderr too
