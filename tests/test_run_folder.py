@@ -156,6 +156,14 @@ def test_a_resume_takes_the_budget_and_how_often_it_saves_and_the_flags_it_was_t
     assert kept[-1] == 64 and len(kept) <= 2  # the last one and the best
 
 
+def test_a_resume_at_or_past_its_budget_says_it_has_nothing_to_train(run: Path, capsys) -> None:
+    """`make train` run again resumes a finished run: it trains nothing, and says so rather than looking stuck."""
+    for budget in ("48", "32"):
+        assert main(["train", *QUICK, "--out", str(run), "--resume", "--episodes", budget]) == 0
+        assert f"already played 48 episodes of --episodes {budget}; nothing to train" in capsys.readouterr().out
+    assert checkpoints(run)[-1][0] == 48
+
+
 def test_eval_refuses_a_task_whose_agents_hear_another_number_of_senders() -> None:
     """The senders an agent hears are its network's message inputs: another count is one line naming the flag."""
     import argparse

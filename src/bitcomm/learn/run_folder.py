@@ -525,6 +525,9 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
     recorded_starts(read_config_json(out), out)
     if (out / "metrics.csv").is_file():
         read_metrics(out / "metrics.csv", int(state["batches"]))
+    played = int(state["episodes"])
+    if played >= cfg.episodes:  # `make train` run again: say why nothing trains
+        print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train")
     return {**state, "weights": weights, "info": info}
 
 
