@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bitcomm.config import ChannelConfig, EnvConfig
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.envs.core import GoalExchangeCore
+from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.errors import ConfigError
 
 STAY, UP, DOWN, LEFT, RIGHT = range(5)
@@ -227,6 +228,24 @@ def test_a_bool_or_a_fraction_is_not_a_count_or_an_agent(make, names: str) -> No
     """True is an int to Python and 1.7 truncates to one: the task's configs refuse both, in one line."""
     with pytest.raises(ConfigError, match=f"invalid {names}"):
         make()
+
+
+@pytest.mark.parametrize(
+    ("make", "names"),
+    [
+        (lambda: TaskConfig(env=4), "env=4: must be a bitcomm.EnvConfig"),
+        (lambda: TaskConfig(EnvConfig(), EnvConfig()), r"channel=EnvConfig\(.*must be a bitcomm.ChannelConfig"),
+        (lambda: VecGoalExchange(None, 8), "task=None: must be a bitcomm.TaskConfig"),
+        (lambda: VecGoalExchange(TaskConfig(), 0), "num_envs=0: must be an integer >= 1"),
+        (lambda: VecGoalExchange(TaskConfig(), "8"), "num_envs='8'"),
+        (lambda: VecGoalExchange(TaskConfig(), 8, seed=-1), "seed=-1: must be None, an integer >= 0"),
+    ],
+)
+def test_a_value_of_the_wrong_kind_is_named_in_one_line(make, names: str) -> None:
+    """Not an AttributeError from inside the core, nor numpy's "expected non-negative integer" naming nothing."""
+    with pytest.raises(ConfigError, match=f"invalid {names}"):
+        make()
+    assert VecGoalExchange(TaskConfig(), np.int64(2), seed=np.uint32(5)).num_envs == 2
 
 
 def test_numpy_numbers_are_taken_and_stored_as_python_ones() -> None:

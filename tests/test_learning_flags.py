@@ -70,6 +70,19 @@ def test_a_config_built_in_python_names_a_wrongly_typed_or_out_of_range_value() 
     assert make_train_config("reinforced", epochs=2, lr=1, gamma=1).lr == 1  # an int is a number
 
 
+def test_a_task_or_config_of_the_wrong_kind_is_named_not_an_attribute_error() -> None:
+    """A notebook's likely slip, the grid's EnvConfig where a TaskConfig goes, or a dict for the config."""
+    from bitcomm.config import EnvConfig
+    from bitcomm.learn.run import train
+
+    with pytest.raises(ConfigError, match=r"invalid task=EnvConfig\(.*must be a bitcomm.TaskConfig"):
+        make_train_config("reinforced", task=EnvConfig(size=4))
+    with pytest.raises(ConfigError, match="invalid task=.*must be a bitcomm.TaskConfig"):
+        TrainConfig(task=EnvConfig(size=4))  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"invalid cfg=\{'episodes': 5\}: must be a TrainConfig"):
+        train({"episodes": 5}, "never-made")  # type: ignore[arg-type]
+
+
 def test_the_help_gives_each_recipes_default_as_the_config_has_it() -> None:
     defaults = {f.name: f.default for cls in (TrainConfig, ModelConfig) for f in dataclasses.fields(cls)}
     for name, option in learning_options().items():

@@ -73,6 +73,8 @@ def test_bad_values_raise_config_error() -> None:
     for kwargs in bad:
         with pytest.raises(ConfigError):
             goal_exchange_v0.parallel_env(**kwargs)
+    with pytest.raises(ConfigError, match="invalid seed=-1"):  # numpy's own error named no parameter
+        goal_exchange_v0.parallel_env().reset(seed=-1)
 
 
 def test_numpy_numbers_are_taken_wherever_python_ones_are() -> None:

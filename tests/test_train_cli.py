@@ -216,6 +216,20 @@ def test_controller_sampling_matches_eval(run_dir: Path) -> None:
     assert ours.to_dict() == got
 
 
+def test_evaluate_takes_a_controller_as_bitcomm_exports_both(run_dir: Path) -> None:
+    """`bitcomm.evaluate(bitcomm.Controller.load(RUN))` is what a newcomer writes: it plays the run's own task as
+    `bitcomm eval RUN` does (it failed with "'Controller' object is not callable"); anything else is named."""
+    import bitcomm as api
+
+    res = bitcomm("eval", str(run_dir), "--episodes", "100", "--seed", "5", "--json")
+    got = json.loads(res.stdout.strip().splitlines()[-1])
+    assert api.evaluate(api.Controller.load(run_dir, seed=5), episodes=100, seed=5).to_dict() == got
+    with pytest.raises(ConfigError, match="invalid policy=3: must be a bitcomm.Controller or a callable"):
+        api.evaluate(3, api.TaskConfig())  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="invalid task=None: must be a bitcomm.TaskConfig"):
+        api.evaluate(lambda obs: obs, None)  # type: ignore[arg-type,return-value]
+
+
 def test_commands_whose_time_is_torchs_take_threads(
     run_dir: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -36,3 +36,8 @@ def __getattr__(name: str) -> Any:
 
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'bitcomm' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    """The lazy names too, so that `dir(bitcomm)` and a notebook's tab completion show them."""
+    return sorted({*globals(), *_LAZY})

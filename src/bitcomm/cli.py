@@ -33,7 +33,11 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="bitcomm", description=__doc__.split(".")[0] if __doc__ else None)
+    from bitcomm import __version__
+
+    description = __doc__.split(".")[0] if __doc__ else None
+    parser = _Parser(prog="bitcomm", description=description, epilog="a command's flags: bitcomm help COMMAND")
+    parser.add_argument("--version", action="version", version=f"bitcomm {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for name in command_names():
         importlib.import_module(f"bitcomm.commands.{name}").add_parser(sub)
@@ -42,6 +46,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv:  # what there is to run, rather than argparse's one line that a command is required
+        parser.print_help(sys.stderr)
+        return 2
+    if argv[0] == "help":  # `bitcomm help [COMMAND]`, as `git help` and `pip help`: the same as -h
+        argv = [*argv[1:2], "--help"]
     try:
         args, unknown = parser.parse_known_args(argv)
     except SystemExit as exit_:  # a usage error (2, its line printed) or --help (0): a status, as run() returns

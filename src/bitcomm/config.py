@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from bitcomm.errors import bad_value, is_integer, is_number
+from bitcomm.errors import bad_value, check_instance, is_integer, is_number
 
 MAX_SEED = 2**32 - 1
 """Seeds feed numpy's SeedSequence and torch.manual_seed; 32 bits is what both take everywhere."""
@@ -156,6 +156,8 @@ class TaskConfig:
     channel: ChannelConfig = field(default_factory=ChannelConfig)
 
     def __post_init__(self) -> None:
+        check_instance("env", self.env, EnvConfig, "a bitcomm.EnvConfig, e.g. EnvConfig(size=4)")
+        check_instance("channel", self.channel, ChannelConfig, "a bitcomm.ChannelConfig, e.g. ChannelConfig(bits=4)")
         if self.channel.delay >= self.env.max_steps:
             raise bad_value(
                 "delay",

@@ -14,6 +14,13 @@ def bad_value(name: str, value: object, allowed: str) -> ConfigError:
     return ConfigError(f"invalid {name}={' '.join(repr(value).split())}: {allowed}")
 
 
+def check_instance(name: str, value: object, kind: type, allowed: str) -> None:
+    """One error line unless `value` is a `kind` (`allowed` says what is, and how to make one), rather than an
+    AttributeError from deep inside whatever first reads it."""
+    if not isinstance(value, kind):
+        raise bad_value(name, value, f"must be {allowed}")
+
+
 def check_int(name: str, value: object, least: int) -> None:
     """One error line unless `value` is an integer >= `least` (a bool or 2.5 is not; `name` as a flag)."""
     if not is_integer(value) or value < least:  # type: ignore[operator]

@@ -13,6 +13,7 @@ import numpy as np
 from bitcomm.channel.core import Channel
 from bitcomm.config import TaskConfig
 from bitcomm.envs.core import GoalExchangeCore, StepResult
+from bitcomm.errors import bad_value, check_instance, is_integer
 
 
 class Observation(NamedTuple):
@@ -47,6 +48,11 @@ class VecGoalExchange:
         seed: int | np.random.SeedSequence | None = None,
         autoreset: bool = True,
     ) -> None:
+        check_instance("task", task, TaskConfig, "a bitcomm.TaskConfig, e.g. TaskConfig(EnvConfig(size=4))")
+        if not is_integer(num_envs) or num_envs < 1:
+            raise bad_value("num_envs", num_envs, "must be an integer >= 1 (episodes stepped side by side)")
+        if not (seed is None or isinstance(seed, np.random.SeedSequence) or (is_integer(seed) and seed >= 0)):
+            raise bad_value("seed", seed, "must be None, an integer >= 0 or a numpy SeedSequence")
         self.task = task
         self.num_envs = num_envs
         self.autoreset = autoreset

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig
-from bitcomm.errors import ConfigError, bad_value, check_int, check_number, is_number
+from bitcomm.errors import ConfigError, bad_value, check_instance, check_int, check_number, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
 from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, NO_SPARE_WORDS, RECIPES, WIDE_MESSAGES
@@ -24,6 +24,7 @@ from bitcomm.policies.reference import OraclePolicy
 
 MODES = ("sync", "a3c")
 BACKENDS = ("local", "ray")
+TASK_ALLOWED = "a bitcomm.TaskConfig, e.g. TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))"
 
 
 ENTROPY_WEIGHTS = (
@@ -224,6 +225,7 @@ class TrainConfig:
     robot may use) or samples them (how the policy was trained)."""
 
     def __post_init__(self) -> None:
+        check_instance("task", self.task, TaskConfig, TASK_ALLOWED)
         if self.estimator not in ESTIMATORS:
             raise bad_value("estimator", self.estimator, f"choose one of {', '.join(ESTIMATORS)}")
         if self.model.messages not in MESSAGE_HEADS:
@@ -450,7 +452,8 @@ def recipe_values(recipe: str, task: TaskConfig, message_reads: str | None = Non
 
 def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = None, **overrides: Any) -> TrainConfig:
     """A TrainConfig from a recipe plus explicit options (None means "the recipe's value")."""
-    task = task or TaskConfig()
+    task = TaskConfig() if task is None else task
+    check_instance("task", task, TaskConfig, TASK_ALLOWED)
     values = recipe_values(recipe, task, overrides.get("message_reads"))
     values.update({k: v for k, v in overrides.items() if v is not None})
     model = ModelConfig(**{k: values.pop(k) for k in list(values) if k in MODEL_OPTIONS})

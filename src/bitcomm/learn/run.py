@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.errors import ConfigError
+from bitcomm.errors import ConfigError, check_instance
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.config import TrainConfig
@@ -44,6 +44,7 @@ from bitcomm.run_lock import run_lock
 def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True, address: str | None = None) -> Path:
     """Train in `cfg.mode` (or on Ray, at the cluster `address`) until `cfg.episodes` episodes are played;
     returns the latest checkpoint."""
+    check_instance("cfg", cfg, TrainConfig, "a TrainConfig, e.g. bitcomm.learn.config.make_train_config()")
     out = Path(out)
     keep_freed_memory()
     check_start(out, resume)

@@ -99,10 +99,24 @@ def run_first_episodes(
     return lengths, returns, success
 
 
-def evaluate(policy: Policy, task: TaskConfig, episodes: int = 2000, seed: int = 0) -> EvalResult:
-    """Mean episode length (95% interval), mean team return and success rate over a seeded set."""
+def evaluate(
+    policy: Policy | Controller, task: TaskConfig | None = None, episodes: int = 2000, seed: int = 0
+) -> EvalResult:
+    """Mean episode length (95% interval), mean team return and success rate over a seeded set.
+
+    `policy` is a batched `Policy` (an `Observation` in, `(B, n)` moves and `(B, n, K)` bits out) or a trained
+    `bitcomm.Controller`, which samples from its own generator (`evaluate_controller` plays it greedily) and
+    brings its task: `evaluate(Controller.load("runs/demo"))`. Any other policy needs `task`."""
     if not isinstance(episodes, int) or episodes < 1:
         raise bad_value("episodes", episodes, "must be an integer >= 1")
+    if not callable(policy):
+        from bitcomm.policies.controller import Controller
+
+        if not isinstance(policy, Controller):
+            raise bad_value("policy", policy, "must be a bitcomm.Controller or a callable obs -> (moves, bits)")
+        return evaluate_controller(policy, episodes, seed, task=task)
+    if not isinstance(task, TaskConfig):
+        raise bad_value("task", task, "must be a bitcomm.TaskConfig (the task to play the policy on)")
     from bitcomm.policies.denormals import flush_denormals  # torch: not at import, which `bitcomm --help` does
 
     with flush_denormals():  # as training does: the same numbers its checks measured, without the slow path

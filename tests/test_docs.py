@@ -1,0 +1,156 @@
+"""What the README and docs/ tell a user to type: every `bitcomm` command in their code blocks parses with the real
+parser (nothing is run), and the command answers `--version`, `help`, no arguments and `python -m bitcomm`.
+
+docs/tuning.md and docs/history.md are logs of past sessions, whose commands may name flags since renamed; they
+are left out. In the others a seed written `S` and an optional flag written `[--flag]` stand for any seed and the
+flag itself.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import re
+import shlex
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from bitcomm import __version__
+from bitcomm.cli import build_parser, main
+
+ROOT = Path(__file__).resolve().parents[1]
+LOGS = ("tuning.md", "history.md")
+DOCS = [ROOT / "README.md", *sorted(p for p in (ROOT / "docs").glob("*.md") if p.name not in LOGS)]
+
+
+def shell_lines(block: list[str]) -> Iterator[str]:
+    """A code block's lines as the shell reads them: `\\` continues a line, as does an open quote."""
+    buf = ""
+    for line in block:
+        buf += line
+        if buf.endswith("\\"):
+            buf = buf[:-1] + " "
+            continue
+        try:
+            shlex.split(buf, comments=True)
+        except ValueError:  # an open quote: the value goes on to the next line
+            buf += "\n"
+            continue
+        yield buf
+        buf = ""
+
+
+def statements(line: str) -> Iterator[list[str]]:
+    """The words of each `;`-separated statement of a shell line, its comment dropped."""
+    lexer = shlex.shlex(line, posix=True, punctuation_chars=";")
+    lexer.whitespace_split = True
+    words: list[str] = []
+    for word in lexer:
+        if word == ";":
+            yield words
+            words = []
+        else:
+            words.append(word)
+    yield words
+
+
+def commands() -> Iterator[tuple[str, list[str]]]:
+    """(where, argv after `bitcomm`) for every `bitcomm` command of every bash block, shell variables expanded."""
+    for path in DOCS:
+        text = path.read_text()
+        for block in re.finditer(r"^```bash\n(.*?)^```", text, flags=re.S | re.M):
+            line_no = text[: block.start()].count("\n") + 2
+            variables: dict[str, str] = {}
+            for line in shell_lines(block.group(1).splitlines()):
+                line = re.sub(r"\[(--[^\]]*)\]", r"\1", line).replace(" --seed S ", " --seed 0 ")
+                for words in statements(line):
+                    if len(words) == 1 and re.fullmatch(r"\w+=.*", words[0], flags=re.S):
+                        name, value = words[0].split("=", 1)
+                        variables[name] = value
+                        continue
+                    if "bitcomm" not in words:
+                        continue
+                    argv = []
+                    for word in words[words.index("bitcomm") + 1 :]:
+                        bare = word.lstrip("$")
+                        if word.startswith("$") and bare in variables:  # unquoted: split on whitespace
+                            argv += variables[bare].split()
+                        else:
+                            for name, value in variables.items():
+                                word = word.replace(f"${name}", value)
+                            argv.append(word)
+                    yield f"{path.name}:{line_no}", argv
+
+
+COMMANDS = list(commands())
+
+
+def test_the_docs_have_commands_to_check() -> None:
+    assert len(COMMANDS) > 100
+    assert {where.split(":")[0] for where, _ in COMMANDS} >= {"README.md", "results.md", "robots.md", "distributed.md"}
+
+
+@pytest.mark.parametrize(("where", "argv"), COMMANDS, ids=[f"{w} {' '.join(a)[:80]}" for w, a in COMMANDS])
+def test_every_documented_command_parses(where: str, argv: list[str]) -> None:
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            _, unknown = build_parser().parse_known_args(argv)
+        except SystemExit as exit_:
+            pytest.fail(f"{where}: bitcomm {' '.join(argv)}\n{err.getvalue()} (exit {exit_.code})")
+    assert not unknown, f"{where}: bitcomm {' '.join(argv)}: unrecognized {unknown}"
+
+
+def test_version_help_and_no_command(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        build_parser().parse_args(["--version"])
+    assert exit_.value.code == 0 and capsys.readouterr().out.strip() == f"bitcomm {__version__}"
+    assert main([]) == 2  # no command: the commands listed, not a one-line error
+    assert "train agents to act and communicate" in capsys.readouterr().err
+    assert main(["help"]) == 0 and "{analyze,baseline," in capsys.readouterr().out
+    assert main(["help", "train"]) == 0 and "--episodes" in capsys.readouterr().out
+    assert main(["help", "nope"]) == 2 and "invalid choice: 'nope'" in capsys.readouterr().err
+
+
+def test_python_m_bitcomm_is_the_command() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "bitcomm", "--version"], capture_output=True, text=True, env=os.environ, timeout=60
+    )
+    assert (out.returncode, out.stdout.strip()) == (0, f"bitcomm {__version__}"), out.stderr
+
+
+def test_dir_lists_every_public_name() -> None:
+    """The lazily loaded names too (BitChannel, Controller, evaluate): a notebook's tab completion reads dir()."""
+    import bitcomm
+
+    assert set(bitcomm.__all__) <= set(dir(bitcomm))
+
+
+def python_blocks() -> Iterator[tuple[str, str]]:
+    for path in DOCS:
+        text = path.read_text()
+        for block in re.finditer(r"^```python\n(.*?)^```", text, flags=re.S | re.M):
+            yield f"{path.name}:{text[: block.start()].count(chr(10)) + 2}", block.group(1)
+
+
+BLOCKS = list(python_blocks())
+
+
+@pytest.mark.parametrize(("where", "source"), BLOCKS, ids=[w for w, _ in BLOCKS])
+def test_every_python_snippet_compiles_and_its_imports_exist(where: str, source: str) -> None:
+    """Running them would train for minutes; what a moved or renamed name breaks is caught by importing it."""
+    import importlib.util
+
+    compile(source, where, "exec")
+    for module, names in re.findall(r"^from ([\w.]+) import ([\w, ]+)", source, flags=re.M):
+        if module.split(".")[0] != "bitcomm" and importlib.util.find_spec(module.split(".")[0]) is None:
+            continue  # an optional extra (mpe2, onnxruntime) that this environment lacks
+        imported = importlib.import_module(module)
+        for name in (n.strip() for n in names.split(",")):
+            found = hasattr(imported, name) or importlib.util.find_spec(f"{module}.{name}") is not None  # a submodule
+            assert found, f"{where}: from {module} import {name}"
