@@ -62,7 +62,7 @@ def add_env_flags(parser: argparse.ArgumentParser) -> None:
         "--env",
         type=env_spec,
         default=None,
-        help="PACKAGE.MODULE:FACTORY returning a PettingZoo ParallelEnv with Box observations "
+        help="PACKAGE.MODULE:FACTORY returning a PettingZoo ParallelEnv with Discrete or Box actions "
         "(e.g. mpe2.simple_speaker_listener_v4:parallel_env); default: the grid task",
     )
     g.add_argument(

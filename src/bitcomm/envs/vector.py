@@ -4,7 +4,11 @@ The learner speaks arrays; a wrapped env (`bitcomm.envs.channel_wrapper.BitChann
 agent name. This module is the one place that converts, so nothing above it loops over agents:
 
 - observations `(B, n, D)` float32: each agent's inner observation flattened and zero-padded to the widest
-  (`EnvLayout.obs_sizes` holds each agent's true size); zeros for an agent that is not present;
+  (`EnvLayout.obs_sizes` holds each agent's true size); zeros for an agent that is not present. A Box is
+  flattened as it is; any other space gymnasium can flatten (Discrete, MultiDiscrete and MultiBinary as
+  one-hots and bits, Dict and Tuple of those) by `gymnasium.spaces.flatten`;
+- actions: Discrete ones as indices from 0 (the space's `start` is added on the way in), Box ones as flat
+  vectors (reshaped to the space's shape and dtype on the way in);
 - received messages `(B, n, slots, K)` uint8, as the wrapper delivers them;
 - the critic's state `(B, Ds)` float32: the inner env's `state()`, or, where it has none, every agent's
   padded observation concatenated (`n * D`);
@@ -57,6 +61,10 @@ class EnvLayout:
     """(n,) bool: agents whose inner action the wrapper fixes (`fixed_actions`): their action head learns nothing."""
     recipients: np.ndarray
     """(n, n) bool: [j, x] = x hears j."""
+    obs_spaces: tuple[spaces.Space, ...] = ()
+    """Each agent's inner observation space (what `flat_observation` flattens; `of` fills it)."""
+    action_spaces: tuple[spaces.Space, ...] = ()
+    """Each agent's inner action space (what `inner_action` converts to; `of` fills it)."""
 
     @property
     def n(self) -> int:
@@ -80,6 +88,8 @@ class EnvLayout:
         """Read a wrapped env's spaces (it is reset once, to find whether it has a state and its size)."""
         agents = tuple(env.possible_agents)
         obs_sizes: list[int] = []
+        obs_spaces: list[spaces.Space] = []
+        act_spaces: list[spaces.Space] = []
         kinds: list[bool] = []
         sizes: list[int] = []
         lows: list[np.ndarray] = []
@@ -87,7 +97,15 @@ class EnvLayout:
         for a in agents:
             obs_space = env.observation_space(a)["observation"]
             act_space = env.action_space(a)["action"]
-            obs_sizes.append(int(np.prod(obs_space.shape)))
+            if not obs_space.is_np_flattenable:
+                raise bad_value(
+                    f"observation_space({a!r})", obs_space,
+                    "learning needs one gymnasium can flatten to a vector (Box, Discrete, MultiDiscrete, "
+                    "MultiBinary, or a Dict or Tuple of them)",
+                )  # fmt: skip
+            obs_sizes.append(spaces.flatdim(obs_space))
+            obs_spaces.append(obs_space)
+            act_spaces.append(act_space)
             if isinstance(act_space, spaces.Discrete):
                 kinds.append(True)
                 sizes.append(int(act_space.n))
@@ -114,6 +132,7 @@ class EnvLayout:
         return cls(
             agents, tuple(obs_sizes), int(env.slot_senders.shape[1]), int(env.bits), int(env.delay), kinds[0],
             tuple(sizes), low, high, state_size, has_state, fixed, np.asarray(env.recipients, dtype=bool),
+            tuple(obs_spaces), tuple(act_spaces),
         )  # fmt: skip
 
 
@@ -190,7 +209,7 @@ class VecEnv:
         live = set(env.agents)
         for i, a in enumerate(L.agents):
             if a in live and a in obs:
-                out.obs[b, i, : L.obs_sizes[i]] = np.asarray(obs[a]["observation"], np.float32).ravel()
+                out.obs[b, i, : L.obs_sizes[i]] = flat_observation(L.obs_spaces[i], obs[a]["observation"])
                 out.received[b, i] = obs[a]["messages"]
                 out.alive[b, i] = True
         state = inner_state(env) if L.has_state else None
@@ -240,6 +259,19 @@ class VecEnv:
         self.close()
 
     def _action(self, action: np.ndarray, i: int) -> Any:
-        if self.layout.discrete:
-            return int(action)
-        return np.asarray(action[: self.layout.action_sizes[i]], np.float32)
+        return inner_action(self.layout.action_spaces[i], action)
+
+
+def flat_observation(space: spaces.Space, observation: Any) -> np.ndarray:
+    """An inner observation as the flat float32 vector the networks read (a Box's values as they are)."""
+    if isinstance(space, spaces.Box):
+        return np.asarray(observation, np.float32).ravel()
+    return np.asarray(spaces.flatten(space, observation), np.float32)
+
+
+def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
+    """The inner env's action from the learner's: a Discrete index from 0 shifted by the space's `start`, a flat
+    Box vector (padded to the widest agent's) cut to the space's size, shaped and typed as it."""
+    if isinstance(space, spaces.Discrete):
+        return int(action) + int(space.start)
+    return np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape).astype(space.dtype, copy=False)

@@ -94,7 +94,9 @@ def record_env_episode(
         env.close()
     T, L = int(ro.length[0]), vec.layout
     actions = ro.actions[:T, 0].numpy()
-    if not L.discrete:  # as the env received them
+    if L.discrete:  # as the env received them (bitcomm.envs.vector.inner_action)
+        actions = actions + np.array([int(getattr(space, "start", 0)) for space in L.action_spaces])
+    else:
         actions = np.clip(actions, L.low, L.high)
     return EnvEpisodeRecord(
         cfg.env, L.agents, np.asarray(env.slot_senders), L.delay, L.fixed, L.action_sizes, L.discrete,
