@@ -380,6 +380,23 @@ def test_cli_errors_are_one_line(
     assert code == 2 and len(err) == 1 and names in err[0], err
 
 
+BAD_ENVS = [
+    (["--env", "no_such_module_xyz:make"], "cannot be imported"),
+    (["--env", f"{__name__}:SpacesEnv", "--env-kwargs", '{"act": "multidiscrete"}'], "action_space('a')"),
+    (["--env", SPEC, "--messages", "onehot", "--bits", "30"], "invalid bits=30: one-hot messages over 2^30 words"),
+]
+
+
+@pytest.mark.parametrize(("flags", "names"), BAD_ENVS)
+def test_cli_refuses_a_bad_env_before_it_prints_or_writes(
+    flags: list[str], names: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(["train", *flags, "--hidden", "16", "--out", str(tmp_path / "run"), "--quiet"])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1 and names in err, (out, err)
+    assert not (tmp_path / "run").exists()
+
+
 def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = str(tmp_path / "run")
     argv = ["train", "--env", SPEC, "--bits", "2", "--num-envs", "8", "--episodes", "8", "--hidden", "16"]
