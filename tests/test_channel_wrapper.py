@@ -310,6 +310,9 @@ def test_a_step_takes_actions_of_live_agents_only() -> None:
         env.step({"a": act})
     with pytest.raises(ValueError, match="b: message must be 2 bits"):
         env.step({"a": act, "b": {"action": 0, "message": np.array([0, 2])}})
+    for plain in (0, {"action": 0}, (0, np.ones(2))):  # the inner action alone, or no message: one line naming both
+        with pytest.raises(ValueError, match=r"b: action must be \{'action': <inner action>, 'message': 2 bits\}"):
+            env.step({"a": act, "b": plain})
 
 
 def test_fixed_actions_replace_the_inner_action() -> None:

@@ -168,6 +168,11 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         for agent in live:
             if agent not in actions:
                 raise KeyError(f"no action for live agent {agent!r}")
+            act = actions[agent]
+            if not isinstance(act, Mapping) or not {"action", "message"} <= act.keys():
+                raise ValueError(
+                    f"{agent}: action must be {{'action': <inner action>, 'message': {self.bits} bits}}, got {act!r}"
+                )
         inner_actions = {a: self.fixed_actions.get(a, actions[a]["action"]) for a in live}
         rows = [self._index[a] for a in live]
         sent = np.zeros((1, self._n, self.bits), dtype=np.uint8)
