@@ -98,8 +98,8 @@ class SpacesEnv(ParallelEnv):
 
     metadata = {"name": "spaces_v0"}
 
-    def __init__(self, obs: str = "box", act: str = "discrete from 1") -> None:
-        self.possible_agents, self.agents = ["a", "b"], []
+    def __init__(self, obs: str = "box", act: str = "discrete from 1", agents: list[Any] | None = None) -> None:
+        self.possible_agents, self.agents = agents or ["a", "b"], []
         self._obs, self._act = SPACES[obs], SPACES[act]
         self.shown: list[dict[str, Any]] = []  # the observations of every reset and step
         self.received: list[dict[str, Any]] = []
@@ -216,6 +216,12 @@ def test_spaces_learning_cannot_use_are_one_line(kwargs: dict[str, str], names: 
     with pytest.raises(ConfigError) as err:
         VecEnv(make, 1)
     assert "\n" not in str(err.value) and names in str(err.value), err.value
+
+
+def test_json_agent_names_reach_an_env_whose_agents_are_not_strings() -> None:
+    channel = {"bits": 2, "topology": [["0", "1"]], "fixed_actions": {"1": 2}}
+    env = env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"agents": [0, 1]}, channel=channel))()
+    assert env.recipients.tolist() == [[False, True], [False, False]] and env.fixed_actions == {1: 2}
 
 
 def test_rollouts_are_seeded() -> None:

@@ -178,9 +178,16 @@ class WrappedEnvMaker:
     fixed_actions: dict[str, Any] | None = None
 
     def __call__(self) -> ParallelEnv:
+        inner = make_parallel_env(self.env, self.env_kwargs)
+        # JSON (--topology, --fixed-actions, config.json) writes every agent name as a string: "0" is agent 0
+        named = {str(a): a for a in inner.possible_agents}
+        topology = self.topology
+        if not isinstance(topology, str):
+            topology = [(named.get(s, s), named.get(r, r)) for s, r in topology]
+        fixed = None if self.fixed_actions is None else {named.get(a, a): v for a, v in self.fixed_actions.items()}
         return BitChannel(
-            make_parallel_env(self.env, self.env_kwargs), bits=self.bits, delay=self.delay, flip_prob=self.flip_prob,
-            drop_prob=self.drop_prob, topology=self.topology, fixed_actions=self.fixed_actions,
+            inner, bits=self.bits, delay=self.delay, flip_prob=self.flip_prob, drop_prob=self.drop_prob,
+            topology=topology, fixed_actions=fixed,
         )  # fmt: skip
 
 
