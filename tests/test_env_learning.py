@@ -98,8 +98,15 @@ class SpacesEnv(ParallelEnv):
 
     metadata = {"name": "spaces_v0"}
 
-    def __init__(self, obs: str = "box", act: str = "discrete from 1", agents: list[Any] | None = None) -> None:
+    def __init__(
+        self, obs: str = "box", act: str = "discrete from 1", agents: list[Any] | None = None, state: str = "none"
+    ) -> None:
         self.possible_agents, self.agents = agents or ["a", "b"], []
+        if state == "state_space":  # a global state, PettingZoo's way
+            self.state_space = spaces.Box(0, 1, (4,), np.float32)
+            self.state = lambda: np.full(4, 0.5, np.float32)  # type: ignore[method-assign]
+        elif state == "dict":  # what PettingZoo's classic envs keep under that name: state() raises TypeError
+            self.state = {"round": 0}  # type: ignore[assignment,method-assign]
         self._obs, self._act = SPACES[obs], SPACES[act]
         self.shown: list[dict[str, Any]] = []  # the observations of every reset and step
         self.received: list[dict[str, Any]] = []
@@ -216,6 +223,16 @@ def test_spaces_learning_cannot_use_are_one_line(kwargs: dict[str, str], names: 
     with pytest.raises(ConfigError) as err:
         VecEnv(make, 1)
     assert "\n" not in str(err.value) and names in str(err.value), err.value
+
+
+@pytest.mark.parametrize(("state", "size"), [("state_space", 4), ("none", 2 * 3), ("dict", 2 * 3)])
+def test_the_critic_reads_the_env_state_where_it_has_a_state_space(state: str, size: int) -> None:
+    """Else the concatenated padded observations (two agents, three numbers each)."""
+    vec = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"state": state})), 2)
+    assert vec.layout.has_state == (state == "state_space") and vec.layout.state_size == size
+    torch.manual_seed(0)
+    ro = play(vec, EnvLearner(config(), vec.layout).policy, np.random.SeedSequence(0), None)
+    assert ro.state.shape == (2, 2, size) and (ro.state == 0.5).all() == (state == "state_space")
 
 
 def test_json_agent_names_reach_an_env_whose_agents_are_not_strings() -> None:

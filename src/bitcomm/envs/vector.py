@@ -10,8 +10,8 @@ agent name. This module is the one place that converts, so nothing above it loop
 - actions: Discrete ones as indices from 0 (the space's `start` is added on the way in), Box ones as flat
   vectors (reshaped to the space's shape and dtype on the way in);
 - received messages `(B, n, slots, K)` uint8, as the wrapper delivers them;
-- the critic's state `(B, Ds)` float32: the inner env's `state()`, or, where it has none, every agent's
-  padded observation concatenated (`n * D`);
+- the critic's state `(B, Ds)` float32: the inner env's `state()` where it has a `state_space`, or, where it
+  has none, every agent's padded observation concatenated (`n * D`);
 - `alive (B, n)`: the agent is present (in `env.agents`) and acts at this step;
 - rewards `(B, n)`, `dropped (B, n)` (the message the agent sent this step was lost), `ended (B,)`.
 
@@ -137,7 +137,11 @@ class EnvLayout:
 
 
 def inner_state(env: Any) -> np.ndarray | None:
-    """The env's global state flattened, or None where it has none (PettingZoo's default raises)."""
+    """The env's global state flattened, or None where it has none: PettingZoo's rule is that an env with a
+    state has a `state_space` (BitChannel keeps the inner one). Without it `state()` may be PettingZoo's default,
+    which raises, or break otherwise (classic envs keep a dict named `state`, so theirs raises TypeError)."""
+    if not hasattr(env, "state_space"):
+        return None
     try:
         return np.asarray(env.state(), dtype=np.float32).ravel()
     except (AttributeError, NotImplementedError):
