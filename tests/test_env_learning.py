@@ -18,7 +18,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from bitcomm.cli import main
-from bitcomm.envs.vector import EnvLayout, VecEnv
+from bitcomm.envs.vector import EnvLayout, VecEnv, inner_action
 from bitcomm.errors import ConfigError
 from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
 from bitcomm.learn.env_eval import evaluate_env
@@ -89,6 +89,7 @@ SPACES = {
     "dict": spaces.Dict(cell=spaces.Discrete(2), near=spaces.Box(-1, 1, (2,), np.float32)),
     "box 2x2": spaces.Box(-1, 1, (2, 2), np.float64),
     "sequence": spaces.Sequence(spaces.Discrete(2)),
+    "multidiscrete 100x100": spaces.MultiDiscrete([100, 100]),
 }
 
 
@@ -178,9 +179,10 @@ def test_box_actions_are_gaussian_and_padded() -> None:
     assert torch.isfinite(torch.tensor(list(learner.update(ro).values()))).all()
 
 
-@pytest.mark.parametrize("act", ["discrete from 1", "discrete from -1", "box 2x2"])
+@pytest.mark.parametrize("act", ["discrete from 1", "discrete from -1", "multidiscrete", "multibinary", "box 2x2"])
 def test_actions_reach_the_env_in_its_own_space(act: str) -> None:
-    """A Discrete action is the policy's index shifted by the space's start; a Box action has its shape and dtype."""
+    """A Discrete action is the policy's index shifted by the space's start; a MultiDiscrete or MultiBinary one is
+    the combination the index numbers (C order); a Box action has its shape and dtype."""
     vec = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"act": act})), 2)
     torch.manual_seed(0)
     ro = play(vec, EnvLearner(config(), vec.layout).policy, np.random.SeedSequence(0), None)
@@ -190,6 +192,9 @@ def test_actions_reach_the_env_in_its_own_space(act: str) -> None:
             for i, a in enumerate("ab"):
                 if isinstance(space, spaces.Discrete):
                     assert actions[a] == int(ro.actions[t, b, i]) + space.start
+                elif isinstance(space, (spaces.MultiDiscrete, spaces.MultiBinary)):
+                    sizes = space.nvec if isinstance(space, spaces.MultiDiscrete) else [2] * space.n
+                    assert actions[a].tolist() == list(np.unravel_index(int(ro.actions[t, b, i]), sizes))
                 else:  # clipped to the bounds on the way
                     want = ro.actions[t, b, i].clamp(-1, 1).numpy()
                     np.testing.assert_allclose(actions[a].ravel(), want, rtol=1e-6)
@@ -213,7 +218,8 @@ def test_observations_of_any_flattenable_space_are_flattened(obs: str) -> None:
 @pytest.mark.parametrize(
     ("kwargs", "names"),
     [
-        ({"act": "multidiscrete"}, "action_space('a')=MultiDiscrete([2 3]): learning supports Discrete or Box"),
+        ({"act": "multidiscrete 100x100"}, "action_space('a')=MultiDiscrete([100 100]): learning acts on its 10000"),
+        ({"act": "dict"}, "action_space('a')=Dict('cell': Discrete(2), 'near': Box(-1.0, 1.0, (2,), float32)): le"),
         ({"obs": "sequence"}, "observation_space('a')=Sequence(Discrete(2), stack=False): learning needs one"),
     ],
 )
@@ -239,6 +245,13 @@ def test_json_agent_names_reach_an_env_whose_agents_are_not_strings() -> None:
     channel = {"bits": 2, "topology": [["0", "1"]], "fixed_actions": {"1": 2}}
     env = env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"agents": [0, 1]}, channel=channel))()
     assert env.recipients.tolist() == [[False, True], [False, False]] and env.fixed_actions == {1: 2}
+
+
+def test_a_multidiscrete_action_is_numbered_by_its_combinations() -> None:
+    space = spaces.MultiDiscrete([[2, 3], [1, 2]], start=[[1, -1], [0, 5]])
+    actions = [inner_action(space, np.int64(i)) for i in range(12)]
+    assert all(space.contains(x) for x in actions) and len({x.tobytes() for x in actions}) == 12
+    assert actions[0].tolist() == [[1, -1], [0, 5]] and actions[11].tolist() == [[2, 1], [0, 6]]
 
 
 def test_rollouts_are_seeded() -> None:
@@ -405,7 +418,7 @@ def test_cli_errors_are_one_line(
 
 BAD_ENVS = [
     (["--env", "no_such_module_xyz:make"], "cannot be imported"),
-    (["--env", f"{__name__}:SpacesEnv", "--env-kwargs", '{"act": "multidiscrete"}'], "action_space('a')"),
+    (["--env", f"{__name__}:SpacesEnv", "--env-kwargs", '{"act": "dict"}'], "action_space('a')"),
     (["--env", SPEC, "--messages", "onehot", "--bits", "30"], "invalid bits=30: one-hot messages over 2^30 words"),
 ]
 

@@ -7,8 +7,10 @@ agent name. This module is the one place that converts, so nothing above it loop
   (`EnvLayout.obs_sizes` holds each agent's true size); zeros for an agent that is not present. A Box is
   flattened as it is; any other space gymnasium can flatten (Discrete, MultiDiscrete and MultiBinary as
   one-hots and bits, Dict and Tuple of those) by `gymnasium.spaces.flatten`;
-- actions: Discrete ones as indices from 0 (the space's `start` is added on the way in), Box ones as flat
-  vectors (reshaped to the space's shape and dtype on the way in);
+- actions: Discrete ones as indices from 0 (the space's `start` is added on the way in); MultiDiscrete and
+  MultiBinary ones as one index over all their combinations (at most `MAX_JOINT_ACTIONS`; unravelled on the
+  way in), so the learner's categorical head acts on them unchanged; Box ones as flat vectors (reshaped to
+  the space's shape and dtype on the way in);
 - received messages `(B, n, slots, K)` uint8, as the wrapper delivers them;
 - the critic's state `(B, Ds)` float32: the inner env's `state()` where it has a `state_space`, or, where it
   has none, every agent's padded observation concatenated (`n * D`);
@@ -36,6 +38,10 @@ from bitcomm.envs.channel_wrapper import BitChannel
 from bitcomm.envs.factory import make_parallel_env
 from bitcomm.errors import bad_value
 
+MAX_JOINT_ACTIONS = 4096
+"""A MultiDiscrete or MultiBinary action space is learned as one categorical over its combinations: this many at
+most (MultiBinary(12), MultiDiscrete([16, 16, 16]))."""
+
 
 @dataclass(frozen=True, eq=False)
 class EnvLayout:
@@ -48,9 +54,9 @@ class EnvLayout:
     bits: int
     delay: int
     discrete: bool
-    """True: every agent's inner action is Discrete; False: every one is a Box."""
+    """True: every agent's inner action is Discrete (or MultiDiscrete, MultiBinary); False: every one is a Box."""
     action_sizes: tuple[int, ...]
-    """Discrete: each agent's number of actions; Box: each agent's flattened action size."""
+    """Discrete: each agent's number of actions (combinations); Box: each agent's flattened action size."""
     low: np.ndarray
     """(n, action_dim) Box lower bounds (padding 0); unused for Discrete."""
     high: np.ndarray
@@ -106,9 +112,15 @@ class EnvLayout:
             obs_sizes.append(spaces.flatdim(obs_space))
             obs_spaces.append(obs_space)
             act_spaces.append(act_space)
-            if isinstance(act_space, spaces.Discrete):
+            if isinstance(act_space, (spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)):
+                count = int(np.prod(_components(act_space), dtype=np.float64))  # float: no overflow before the check
+                if count > MAX_JOINT_ACTIONS:
+                    raise bad_value(
+                        f"action_space({a!r})", act_space,
+                        f"learning acts on its {count} combinations as one categorical, {MAX_JOINT_ACTIONS} at most",
+                    )  # fmt: skip
                 kinds.append(True)
-                sizes.append(int(act_space.n))
+                sizes.append(count)
                 lows.append(np.zeros(0))
                 highs.append(np.zeros(0))
             elif isinstance(act_space, spaces.Box):
@@ -117,7 +129,11 @@ class EnvLayout:
                 lows.append(np.asarray(act_space.low, np.float32).ravel())
                 highs.append(np.asarray(act_space.high, np.float32).ravel())
             else:
-                raise bad_value(f"action_space({a!r})", act_space, "learning supports Discrete or Box actions")
+                raise bad_value(
+                    f"action_space({a!r})",
+                    act_space,
+                    "learning supports Discrete, MultiDiscrete, MultiBinary or Box actions",
+                )
         if len(set(kinds)) != 1:
             raise bad_value("env", type(env.inner).__name__, "agents mix Discrete and Box actions; use one kind")
         width = max(sizes)
@@ -280,9 +296,25 @@ def flat_observation(space: spaces.Space, observation: Any) -> np.ndarray:
     return np.asarray(spaces.flatten(space, observation), np.float32)
 
 
+def _components(space: spaces.Space) -> list[int]:
+    """The sizes of a discrete action space's parts: one for Discrete, one per entry of MultiDiscrete, MultiBinary."""
+    if isinstance(space, spaces.Discrete):
+        return [int(space.n)]
+    if isinstance(space, spaces.MultiDiscrete):
+        return [int(k) for k in space.nvec.ravel()]
+    return [2] * spaces.flatdim(space)
+
+
 def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
-    """The inner env's action from the learner's: a Discrete index from 0 shifted by the space's `start`, a flat
-    Box vector (padded to the widest agent's) cut to the space's size, shaped and typed as it."""
+    """The inner env's action from the learner's: a Discrete index from 0 shifted by the space's `start`; a
+    MultiDiscrete or MultiBinary one unravelled from the index of its combination (C order: the last entry varies
+    fastest), shaped, shifted and typed as the space; a flat Box vector (padded to the widest agent's) cut to the
+    space's size, shaped and typed as it."""
     if isinstance(space, spaces.Discrete):
         return int(action) + int(space.start)
+    if isinstance(space, (spaces.MultiDiscrete, spaces.MultiBinary)):
+        parts = np.array(np.unravel_index(int(action), _components(space))).reshape(space.shape)
+        if isinstance(space, spaces.MultiDiscrete):
+            parts = parts + space.start
+        return parts.astype(space.dtype)
     return np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape).astype(space.dtype, copy=False)
