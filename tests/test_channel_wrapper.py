@@ -35,8 +35,9 @@ class Toy(ParallelEnv):
         c_steps: int | None = None,
         action_space: spaces.Space | None = None,
         observation_space: spaces.Space | None = None,
+        agents: list[str] | None = None,
     ) -> None:
-        self.possible_agents = ["a", "b", "c"]
+        self.possible_agents = ["a", "b", "c"] if agents is None else agents
         self.agents: list[str] = []
         self.steps, self.c_steps = steps, c_steps
         self._obs = observation_space if observation_space is not None else spaces.Box(0.0, 1e6, (2,), np.float32)
@@ -339,6 +340,8 @@ BAD: dict[str, tuple[Callable[[], Any], str]] = {
     "flip -0.1": (lambda: BitChannel(Toy(), flip_prob=-0.1), "flip_prob=-0.1"),
     "drop 1.5": (lambda: BitChannel(Toy(), drop_prob=1.5), "drop_prob=1.5"),
     "not parallel": (lambda: BitChannel(goal_exchange_v0.env()), "env="),
+    "no agents": (lambda: BitChannel(Toy(agents=[])), "possible_agents=[]"),
+    "an agent twice": (lambda: BitChannel(Toy(agents=["a", "b", "a"])), "possible_agents=['a', 'b', 'a']"),
     "not a space": (lambda: BitChannel(Toy(action_space=[0, 1, 2])), "action_space('a')=[0, 1, 2]"),  # type: ignore[arg-type]
     "topology word": (lambda: BitChannel(Toy(), topology="star"), "topology='star'"),
     "unknown agent": (lambda: BitChannel(Toy(), topology=[("a", "z")]), "'z' is not an agent"),

@@ -93,6 +93,8 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
             raise bad_value("seed", seed, "must be None or an integer >= 0")
         self.inner = env
         self.possible_agents: list[AgentID] = list(env.possible_agents)
+        if not self.possible_agents or len(set(self.possible_agents)) != len(self.possible_agents):
+            raise bad_value("possible_agents", self.possible_agents, "the env must name one or more distinct agents")
         self.agents: list[AgentID] = []
         n = len(self.possible_agents)
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
