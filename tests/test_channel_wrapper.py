@@ -29,11 +29,18 @@ class Toy(ParallelEnv):
 
     metadata = {"name": "toy_v0"}
 
-    def __init__(self, steps: int = 8, c_steps: int | None = None, action_space: spaces.Space | None = None) -> None:
-        self.possible_agents = ["a", "b", "c"]
+    def __init__(
+        self,
+        steps: int = 8,
+        c_steps: int | None = None,
+        action_space: spaces.Space | None = None,
+        observation_space: spaces.Space | None = None,
+        agents: list[str] | None = None,
+    ) -> None:
+        self.possible_agents = ["a", "b", "c"] if agents is None else agents
         self.agents: list[str] = []
         self.steps, self.c_steps = steps, c_steps
-        self._obs = spaces.Box(0.0, 1e6, (2,), np.float32)
+        self._obs = observation_space if observation_space is not None else spaces.Box(0.0, 1e6, (2,), np.float32)
         self._act = action_space if action_space is not None else spaces.Discrete(3)
         self.received: list[dict[str, Any]] = []  # the inner actions of every step
         self.rng = np.random.default_rng()
@@ -45,7 +52,10 @@ class Toy(ParallelEnv):
     def action_space(self, agent: str) -> spaces.Space:
         return self._act
 
-    def _observe(self) -> dict[str, np.ndarray]:
+    def _observe(self) -> dict[str, Any]:
+        if not isinstance(self._obs, spaces.Box) or self._obs.shape != (2,):  # a seeded draw from the space
+            self._obs.seed(int(self.rng.integers(2**31)))
+            return {a: self._obs.sample() for a in self.agents}
         return {a: np.array([self.t, self.rng.random()], dtype=np.float32) for a in self.agents}
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
@@ -82,11 +92,17 @@ INNER = {
     "reference": mpe("simple_reference_v3"),
     "spread_continuous": mpe("simple_spread_v3", N=3, continuous_actions=True),
     "toy_leaving": lambda: Toy(steps=10, c_steps=3),
+    "toy_dict_obs_multidiscrete_action": lambda: Toy(
+        steps=10,
+        c_steps=3,
+        observation_space=spaces.Dict(pos=spaces.Box(-1, 1, (2, 2), np.float32), cell=spaces.Discrete(4, start=1)),
+        action_space=spaces.MultiDiscrete([2, 3]),
+    ),
 }
 
 
 def zero_action(space: spaces.Space) -> Any:
-    return np.zeros(space.shape, space.dtype) if isinstance(space, spaces.Box) else 0
+    return np.zeros(space.shape, space.dtype) if not isinstance(space, spaces.Discrete) else 0
 
 
 def run(env: BitChannel, messages: Callable[[int, str], np.ndarray], seed: int | None = 0) -> list[dict]:
@@ -147,6 +163,38 @@ def test_spaces_and_attributes() -> None:
     assert env.state_space is inner.state_space
     assert np.array_equal(env.state(), inner.state())
     env.close()
+
+
+@pytest.mark.parametrize(
+    "observation_space",
+    [
+        spaces.Box(0, 255, (4, 4, 3), np.uint8),  # an image
+        spaces.Box(-1, 1, (), np.float32),  # a scalar
+        spaces.Discrete(5, start=2),
+        spaces.MultiDiscrete([3, 4]),
+        spaces.MultiBinary(4),
+        spaces.Tuple((spaces.Discrete(2), spaces.Box(-1, 1, (3,), np.float32))),
+        spaces.Dict(cell=spaces.Discrete(3), seen=spaces.MultiBinary(2)),
+    ],
+    ids=repr,
+)
+def test_any_inner_observation_space_is_carried_as_it_is(observation_space: spaces.Space) -> None:
+    env = BitChannel(Toy(steps=4, c_steps=2, observation_space=observation_space), bits=2, seed=0)
+    assert env.observation_space("a")["observation"] is observation_space
+    for obs in run(env, lambda t, a: np.ones(2, np.int8)):
+        for agent, o in obs.items():
+            assert env.observation_space(agent).contains(o), (agent, o)
+
+
+def test_an_inner_reset_without_options_is_called_without_them() -> None:
+    class NoOptions(Toy):
+        def reset(self, seed: int | None = None) -> tuple[dict, dict]:  # type: ignore[override]
+            return super().reset(seed)
+
+    env = BitChannel(NoOptions(steps=2), bits=2)
+    assert len(run(env, lambda t, a: np.zeros(2, np.int8))) == 3
+    with pytest.raises(TypeError, match="options"):  # options given are passed on
+        env.reset(seed=0, options={"x": 1})
 
 
 def test_no_inner_state_no_state() -> None:
@@ -263,6 +311,9 @@ def test_a_step_takes_actions_of_live_agents_only() -> None:
         env.step({"a": act})
     with pytest.raises(ValueError, match="b: message must be 2 bits"):
         env.step({"a": act, "b": {"action": 0, "message": np.array([0, 2])}})
+    for plain in (0, {"action": 0}, (0, np.ones(2))):  # the inner action alone, or no message: one line naming both
+        with pytest.raises(ValueError, match=r"b: action must be \{'action': <inner action>, 'message': 2 bits\}"):
+            env.step({"a": act, "b": plain})
 
 
 def test_fixed_actions_replace_the_inner_action() -> None:
@@ -289,11 +340,9 @@ BAD: dict[str, tuple[Callable[[], Any], str]] = {
     "flip -0.1": (lambda: BitChannel(Toy(), flip_prob=-0.1), "flip_prob=-0.1"),
     "drop 1.5": (lambda: BitChannel(Toy(), drop_prob=1.5), "drop_prob=1.5"),
     "not parallel": (lambda: BitChannel(goal_exchange_v0.env()), "env="),
-    "Dict observation": (lambda: BitChannel(goal_exchange_v0.parallel_env()), "observation_space('agent_0')"),
-    "MultiDiscrete action": (
-        lambda: BitChannel(Toy(action_space=spaces.MultiDiscrete([2, 2]))),
-        "action_space('a')=MultiDiscrete",
-    ),
+    "no agents": (lambda: BitChannel(Toy(agents=[])), "possible_agents=[]"),
+    "an agent twice": (lambda: BitChannel(Toy(agents=["a", "b", "a"])), "possible_agents=['a', 'b', 'a']"),
+    "not a space": (lambda: BitChannel(Toy(action_space=[0, 1, 2])), "action_space('a')=[0, 1, 2]"),  # type: ignore[arg-type]
     "topology word": (lambda: BitChannel(Toy(), topology="star"), "topology='star'"),
     "unknown agent": (lambda: BitChannel(Toy(), topology=[("a", "z")]), "'z' is not an agent"),
     "self edge": (lambda: BitChannel(Toy(), topology=[("a", "a")]), "itself"),

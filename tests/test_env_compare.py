@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 
 import pytest
-from tests.test_env_learning import SPEC
+from tests.test_env_learning import BAD_ENVS, SPEC
 
 from bitcomm.cli import main
 
@@ -98,6 +98,17 @@ def test_options_that_do_not_apply_are_one_line(
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and named in err, err
     assert not (tmp_path / "s" / "runs").exists()
+
+
+@pytest.mark.parametrize(("flags", "names"), BAD_ENVS)
+def test_a_bad_env_is_one_line_before_any_run(
+    flags: list[str], names: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    flags = [f for f in flags if f not in ("--messages", "onehot")]  # the study has one-hot runs anyway
+    assert main(["compare", *flags, "--hidden", "16", "--seeds", "1", "--out", str(tmp_path / "s")]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.strip().splitlines()) == 1 and names in err, (out, err)
+    assert not (tmp_path / "s").exists()
 
 
 def test_env_flags_without_env_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

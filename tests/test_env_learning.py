@@ -18,7 +18,8 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from bitcomm.cli import main
-from bitcomm.envs.vector import EnvLayout, VecEnv
+from bitcomm.envs.vector import EnvLayout, VecEnv, inner_action
+from bitcomm.errors import ConfigError
 from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
 from bitcomm.learn.env_eval import evaluate_env
 from bitcomm.learn.env_learner import EnvLearner
@@ -78,6 +79,64 @@ class SignalEnv(ParallelEnv):
         return {a: obs[a] for a in acting}, {a: r for a in acting}, term, trunc, {a: {} for a in acting}
 
 
+SPACES = {
+    "box": spaces.Box(-1, 1, (3,), np.float32),
+    "image": spaces.Box(0, 255, (2, 2, 3), np.uint8),
+    "discrete from 1": spaces.Discrete(3, start=1),
+    "discrete from -1": spaces.Discrete(3, start=-1),
+    "multidiscrete": spaces.MultiDiscrete([2, 3]),
+    "multibinary": spaces.MultiBinary(2),
+    "dict": spaces.Dict(cell=spaces.Discrete(2), near=spaces.Box(-1, 1, (2,), np.float32)),
+    "box 2x2": spaces.Box(-1, 1, (2, 2), np.float64),
+    "sequence": spaces.Sequence(spaces.Discrete(2)),
+    "multidiscrete 100x100": spaces.MultiDiscrete([100, 100]),
+}
+
+
+class SpacesEnv(ParallelEnv):
+    """Agents a and b with the observation and action spaces named in `SPACES`; observations are seeded draws
+    from the space, and every action received is checked to be in its space and kept in `received`."""
+
+    metadata = {"name": "spaces_v0"}
+
+    def __init__(
+        self, obs: str = "box", act: str = "discrete from 1", agents: list[Any] | None = None, state: str = "none"
+    ) -> None:
+        self.possible_agents, self.agents = agents or ["a", "b"], []
+        if state == "state_space":  # a global state, PettingZoo's way
+            self.state_space = spaces.Box(0, 1, (4,), np.float32)
+            self.state = lambda: np.full(4, 0.5, np.float32)  # type: ignore[method-assign]
+        elif state == "dict":  # what PettingZoo's classic envs keep under that name: state() raises TypeError
+            self.state = {"round": 0}  # type: ignore[assignment,method-assign]
+        self._obs, self._act = SPACES[obs], SPACES[act]
+        self.shown: list[dict[str, Any]] = []  # the observations of every reset and step
+        self.received: list[dict[str, Any]] = []
+
+    def observation_space(self, agent: str) -> spaces.Space:
+        return self._obs
+
+    def action_space(self, agent: str) -> spaces.Space:
+        return self._act
+
+    def _observe(self) -> dict[str, Any]:
+        self.shown.append({a: self._obs.sample() for a in self.possible_agents})
+        return self.shown[-1]
+
+    def reset(self, seed: int | None = None, options: Any = None) -> tuple[dict, dict]:
+        self._obs.seed(seed)
+        self.agents, self.shown, self.received = list(self.possible_agents), [], []
+        return self._observe(), {a: {} for a in self.agents}
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        for a, act in actions.items():
+            assert self._act.contains(act), (a, act, self._act)
+        self.received.append(actions)
+        done = len(self.received) >= 2
+        self.agents = [] if done else list(self.possible_agents)
+        obs = self._observe()
+        return obs, dict.fromkeys(obs, 0.0), dict.fromkeys(obs, False), dict.fromkeys(obs, done), {a: {} for a in obs}
+
+
 def config(**kw: Any) -> EnvTrainConfig:
     channel = EnvChannelConfig(**kw.pop("channel", {"bits": 2}))
     base: dict[str, Any] = dict(env=SPEC, num_envs=8, episodes=16, hidden=(32,), checkpoint_seconds=1e9)
@@ -118,6 +177,81 @@ def test_box_actions_are_gaussian_and_padded() -> None:
     out, _ = learner.policy(ro.obs[0], ro.received[0])
     torch.testing.assert_close(dist.log_prob(out, ro.actions[0]), ro.logp_action[0])
     assert torch.isfinite(torch.tensor(list(learner.update(ro).values()))).all()
+
+
+@pytest.mark.parametrize("act", ["discrete from 1", "discrete from -1", "multidiscrete", "multibinary", "box 2x2"])
+def test_actions_reach_the_env_in_its_own_space(act: str) -> None:
+    """A Discrete action is the policy's index shifted by the space's start; a MultiDiscrete or MultiBinary one is
+    the combination the index numbers (C order); a Box action has its shape and dtype."""
+    vec = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"act": act})), 2)
+    torch.manual_seed(0)
+    ro = play(vec, EnvLearner(config(), vec.layout).policy, np.random.SeedSequence(0), None)
+    space = SPACES[act]
+    for b, env in enumerate(vec.envs):
+        for t, actions in enumerate(env.inner.received):  # every one was in the space (SpacesEnv checks)
+            for i, a in enumerate("ab"):
+                if isinstance(space, spaces.Discrete):
+                    assert actions[a] == int(ro.actions[t, b, i]) + space.start
+                elif isinstance(space, (spaces.MultiDiscrete, spaces.MultiBinary)):
+                    sizes = space.nvec if isinstance(space, spaces.MultiDiscrete) else [2] * space.n
+                    assert actions[a].tolist() == list(np.unravel_index(int(ro.actions[t, b, i]), sizes))
+                else:  # clipped to the bounds on the way
+                    want = ro.actions[t, b, i].clamp(-1, 1).numpy()
+                    np.testing.assert_allclose(actions[a].ravel(), want, rtol=1e-6)
+
+
+@pytest.mark.parametrize("obs", ["image", "discrete from 1", "multidiscrete", "multibinary", "dict"])
+def test_observations_of_any_flattenable_space_are_flattened(obs: str) -> None:
+    """Box values as they are; Discrete and MultiDiscrete one-hot, MultiBinary bits, Dict concatenated."""
+    vec = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"obs": obs})), 1)
+    space = SPACES[obs]
+    assert vec.layout.obs_sizes == (spaces.flatdim(space),) * 2
+    torch.manual_seed(0)
+    ro = play(vec, EnvLearner(config(), vec.layout).policy, np.random.SeedSequence(0), None)
+    shown = vec.envs[0].inner.shown
+    for t in range(2):
+        for i, a in enumerate("ab"):
+            want = spaces.flatten(space, shown[t][a]).astype(np.float32)
+            np.testing.assert_array_equal(ro.obs[t, 0, i].numpy(), want)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "names"),
+    [
+        ({"act": "multidiscrete 100x100"}, "action_space('a')=MultiDiscrete([100 100]): learning acts on its 10000"),
+        ({"act": "dict"}, "action_space('a')=Dict('cell': Discrete(2), 'near': Box(-1.0, 1.0, (2,), float32)): le"),
+        ({"obs": "sequence"}, "observation_space('a')=Sequence(Discrete(2), stack=False): learning needs one"),
+    ],
+)
+def test_spaces_learning_cannot_use_are_one_line(kwargs: dict[str, str], names: str) -> None:
+    make = env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs=kwargs))
+    make().reset(seed=0)  # the wrapper carries them
+    with pytest.raises(ConfigError) as err:
+        VecEnv(make, 1)
+    assert "\n" not in str(err.value) and names in str(err.value), err.value
+
+
+@pytest.mark.parametrize(("state", "size"), [("state_space", 4), ("none", 2 * 3), ("dict", 2 * 3)])
+def test_the_critic_reads_the_env_state_where_it_has_a_state_space(state: str, size: int) -> None:
+    """Else the concatenated padded observations (two agents, three numbers each)."""
+    vec = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"state": state})), 2)
+    assert vec.layout.has_state == (state == "state_space") and vec.layout.state_size == size
+    torch.manual_seed(0)
+    ro = play(vec, EnvLearner(config(), vec.layout).policy, np.random.SeedSequence(0), None)
+    assert ro.state.shape == (2, 2, size) and (ro.state == 0.5).all() == (state == "state_space")
+
+
+def test_json_agent_names_reach_an_env_whose_agents_are_not_strings() -> None:
+    channel = {"bits": 2, "topology": [["0", "1"]], "fixed_actions": {"1": 2}}
+    env = env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"agents": [0, 1]}, channel=channel))()
+    assert env.recipients.tolist() == [[False, True], [False, False]] and env.fixed_actions == {1: 2}
+
+
+def test_a_multidiscrete_action_is_numbered_by_its_combinations() -> None:
+    space = spaces.MultiDiscrete([[2, 3], [1, 2]], start=[[1, -1], [0, 5]])
+    actions = [inner_action(space, np.int64(i)) for i in range(12)]
+    assert all(space.contains(x) for x in actions) and len({x.tobytes() for x in actions}) == 12
+    assert actions[0].tolist() == [[1, -1], [0, 5]] and actions[11].tolist() == [[2, 1], [0, 6]]
 
 
 def test_rollouts_are_seeded() -> None:
@@ -280,6 +414,23 @@ def test_cli_errors_are_one_line(
     code = main(["train", *flags, "--out", str(tmp_path / "run"), "--quiet", "--eval-episodes", "0"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and names in err[0], err
+
+
+BAD_ENVS = [
+    (["--env", "no_such_module_xyz:make"], "cannot be imported"),
+    (["--env", f"{__name__}:SpacesEnv", "--env-kwargs", '{"act": "dict"}'], "action_space('a')"),
+    (["--env", SPEC, "--messages", "onehot", "--bits", "30"], "invalid bits=30: one-hot messages over 2^30 words"),
+]
+
+
+@pytest.mark.parametrize(("flags", "names"), BAD_ENVS)
+def test_cli_refuses_a_bad_env_before_it_prints_or_writes(
+    flags: list[str], names: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(["train", *flags, "--hidden", "16", "--out", str(tmp_path / "run"), "--quiet"])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1 and names in err, (out, err)
+    assert not (tmp_path / "run").exists()
 
 
 def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -126,6 +126,8 @@ def test_text_shows_the_bits_sent_and_received_and_the_drops() -> None:
     assert lines[2][2].endswith("received 00<-speaker (dropped)")
     box = record._replace(discrete=False, fixed=np.array([False, False]), actions=np.full((3, 2, 2), 0.5))
     assert step_lines(box, 0)[1].startswith("speaker  action [+0.50]  |")  # its own action size: 1
+    spaces_of = (spaces.Discrete(1), spaces.MultiDiscrete([2, 3], start=[1, 1]))  # index 1: combination (1, 2)
+    assert step_lines(record._replace(action_spaces=spaces_of), 0)[2].startswith("listener  action [1 2]  |")
     gone = record._replace(alive=np.array([[True, True], [True, True], [False, True]]))
     assert step_lines(gone, 2)[1] == "speaker  gone"
 

@@ -47,6 +47,7 @@ from bitcomm.studies.compare import (
 
 if TYPE_CHECKING:
     from bitcomm.learn.config import TrainConfig
+    from bitcomm.learn.env_config import EnvTrainConfig
 
 MAX_SEEDS = 1000
 """Seeds per configuration: 1000 runs of each is already months of CPU (and keeps --eval-seed's default free)."""
@@ -174,13 +175,15 @@ def grid_study(args: argparse.Namespace) -> tuple[Callable[..., dict[str, Any]],
 
 def env_study(args: argparse.Namespace) -> tuple[Callable[..., dict[str, Any]], Callable[..., str], Any]:
     """The study on a wrapped env; the grid's --recipe and --vary do not apply (one line each)."""
-    from bitcomm.studies.env_compare import EnvCompareConfig, run_env_compare, table_markdown
+    from bitcomm.studies.env_compare import EnvCompareConfig, plan, run_env_compare, table_markdown
 
     for name in ("recipe", "vary"):
         if getattr(args, name):
             raise bad_value(name, getattr(args, name), "a grid option, not used with --env")
     base = env_train.env_config_from_args(args)
     cfg = EnvCompareConfig(base=base, **_common(args), seeds=args.seeds or ENV_STUDY_SEEDS)
+    runs = plan(cfg)
+    env_train.check_env([typing.cast("EnvTrainConfig", r.train) for r in runs], processes=min(cfg.jobs, len(runs)))
     return run_env_compare, table_markdown, cfg
 
 

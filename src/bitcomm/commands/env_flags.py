@@ -62,8 +62,8 @@ def add_env_flags(parser: argparse.ArgumentParser) -> None:
         "--env",
         type=env_spec,
         default=None,
-        help="PACKAGE.MODULE:FACTORY returning a PettingZoo ParallelEnv with Box observations "
-        "(e.g. mpe2.simple_speaker_listener_v4:parallel_env); default: the grid task",
+        help="PACKAGE.MODULE:FACTORY returning a PettingZoo ParallelEnv with (Multi)Discrete, MultiBinary or Box "
+        "actions (e.g. mpe2.simple_speaker_listener_v4:parallel_env); default: the grid task",
     )
     g.add_argument(
         "--env-kwargs", type=json_object, default=None, help="the factory's keyword arguments, a JSON object"

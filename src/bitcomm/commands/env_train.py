@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -104,6 +105,28 @@ def resumed_env_config(args: argparse.Namespace, out: Path) -> EnvTrainConfig:
     return dataclasses.replace(cfg, **{k: typed[k] for k in now if k in typed})
 
 
+def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1) -> None:
+    """Before a line is printed or a folder written: one copy of the runs' env built and its spaces read (a
+    module that does not import, a factory that fails, a channel option or a space the learner cannot use is
+    one line now, not after the run started), and the 2^K-wide layers of one-hot messages, `processes` runs
+    at once, checked against the memory available (as `check_train` on the grid). `configs` share their env."""
+    from bitcomm.commands.flags import check_memory
+    from bitcomm.envs.vector import EnvLayout
+    from bitcomm.learn.env_rollout import env_factory
+
+    env = env_factory(configs[0])()
+    try:
+        layout = EnvLayout.of(env)
+    finally:
+        env.close()
+    for cfg in configs:
+        if cfg.messages == "onehot":  # the policy's output and message input, V1's message input (x16: Adam)
+            readers = 2 if cfg.estimator == "standard" else 1
+            need = processes * (1 << cfg.channel.bits) * (cfg.hidden[-1] + readers * layout.slots * cfg.hidden[0]) * 16
+            what = f"one-hot messages over 2^{cfg.channel.bits} words ({processes} run(s) at once)"
+            check_memory("bits", cfg.channel.bits, need, what)
+
+
 def train(args: argparse.Namespace) -> int:
     """Train on the env of `--env` (or resume such a run), on the torch threads the caller has set."""
     from bitcomm.learn.env_eval import evaluate_env
@@ -123,6 +146,7 @@ def train(args: argparse.Namespace) -> int:
     module = cfg.env.partition(":")[0].rpartition(".")[2]
     out = args.out or Path("runs") / f"env-{module}-{cfg.estimator}-{cfg.messages}-s{cfg.seed}"
     check_start(out, args.resume)  # before a line is printed
+    check_env([cfg])
     print(f"run folder: {out}{' (resumed)' if args.resume else ''}; env {cfg.env}", flush=True)
     checkpoint = train_env(cfg, out, resume=args.resume, progress=not args.quiet)
     print(f"checkpoint: {checkpoint}")

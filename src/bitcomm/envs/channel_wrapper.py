@@ -3,9 +3,9 @@
 
 | Import             | `from bitcomm.envs.channel_wrapper import BitChannel` (or `bitcomm.BitChannel`)  |
 |--------------------|----------------------------------------------------------------------------------|
-| Wraps              | any `ParallelEnv` with Box observations and Discrete or Box actions               |
+| Wraps              | any `ParallelEnv` whose spaces are gymnasium spaces (the learner: see vector.py)  |
 | Action Shape       | `Dict(action=<inner action space>, message=MultiBinary(K))`                      |
-| Observation Shape  | `Dict(observation=<inner Box>, messages=MultiBinary((slots, K)))`                 |
+| Observation Shape  | `Dict(observation=<inner space>, messages=MultiBinary((slots, K)))`               |
 | State              | the inner `state()` and `state_space`, unchanged, when the inner env has them     |
 
 Each agent's action gains K message bits; each observation gains the bits received from the
@@ -52,10 +52,13 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
 
     Spaces, for each agent `a` of `possible_agents`:
 
-    - `observation_space(a) = Dict(observation=<inner Box>, messages=MultiBinary((slots, K)))`: row s of
+    - `observation_space(a) = Dict(observation=<inner space>, messages=MultiBinary((slots, K)))`: row s of
       `messages` holds the bits from the s-th sender that `a` hears, senders in `possible_agents` order;
       rows beyond the senders `a` hears stay zero; `slots` is the most senders any agent hears (>= 1).
-    - `action_space(a) = Dict(action=<inner Discrete or Box>, message=MultiBinary(K))`.
+    - `action_space(a) = Dict(action=<inner space>, message=MultiBinary(K))`.
+
+    The inner spaces are carried as they are, whatever their type (Box, Discrete, MultiDiscrete, Dict...);
+    `bitcomm train --env` learns on those `bitcomm.envs.vector.EnvLayout` accepts.
 
     `step(actions)` takes actions for the live agents (`agents`); actions for agents that have left
     are ignored, and such agents send zeros (their slot reads zeros, whatever the noise). Rewards,
@@ -90,6 +93,8 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
             raise bad_value("seed", seed, "must be None or an integer >= 0")
         self.inner = env
         self.possible_agents: list[AgentID] = list(env.possible_agents)
+        if not self.possible_agents or len(set(self.possible_agents)) != len(self.possible_agents):
+            raise bad_value("possible_agents", self.possible_agents, "the env must name one or more distinct agents")
         self.agents: list[AgentID] = []
         n = len(self.possible_agents)
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
@@ -105,8 +110,8 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         )
         self.bits, self.delay = self.channel_config.bits, self.channel_config.delay
         slots = self.slot_senders.shape[1]
-        inner_obs = {a: _inner_space(env, a, "observation", (spaces.Box,)) for a in self.possible_agents}
-        inner_act = {a: _inner_space(env, a, "action", (spaces.Discrete, spaces.Box)) for a in self.possible_agents}
+        inner_obs = {a: _inner_space(env, a, "observation") for a in self.possible_agents}
+        inner_act = {a: _inner_space(env, a, "action") for a in self.possible_agents}
         self.fixed_actions = _check_fixed(fixed_actions, inner_act)
         # one space object per agent, built once: PettingZoo requires the same object on every call
         self.observation_spaces = {
@@ -149,7 +154,9 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         else:
             self._channel.reset()
         self._alive.reset()
-        observations, infos = self.inner.reset(seed=seed, options=options)
+        # options only when given: an env whose reset() takes no options is wrapped as it is
+        extra = {} if options is None else {"options": options}
+        observations, infos = self.inner.reset(seed=seed, **extra)
         self.agents = list(self.inner.agents)
         empty = np.zeros((self._n,) + self.slot_senders.shape[1:] + (self.bits,), dtype=np.int8)
         return self._augment(observations, empty), infos
@@ -163,6 +170,11 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         for agent in live:
             if agent not in actions:
                 raise KeyError(f"no action for live agent {agent!r}")
+            act = actions[agent]
+            if not isinstance(act, Mapping) or not {"action", "message"} <= act.keys():
+                raise ValueError(
+                    f"{agent}: action must be {{'action': <inner action>, 'message': {self.bits} bits}}, got {act!r}"
+                )
         inner_actions = {a: self.fixed_actions.get(a, actions[a]["action"]) for a in live}
         rows = [self._index[a] for a in live]
         sent = np.zeros((1, self._n, self.bits), dtype=np.uint8)
@@ -213,12 +225,11 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         self.inner.close()
 
 
-def _inner_space(env: ParallelEnv, agent: AgentID, kind: str, allowed: tuple[type, ...]) -> spaces.Space:
-    """The inner env's observation or action space of `agent`, or one error line if its type is unsupported."""
-    space: spaces.Space = getattr(env, f"{kind}_space")(agent)
-    if not isinstance(space, allowed):
-        names = " or ".join(t.__name__ for t in allowed)
-        raise bad_value(f"{kind}_space({agent!r})", space, f"BitChannel wraps {kind} spaces of type {names} only")
+def _inner_space(env: ParallelEnv, agent: AgentID, kind: str) -> spaces.Space:
+    """The inner env's observation or action space of `agent`, or one error line if it is not a gymnasium space."""
+    space = getattr(env, f"{kind}_space")(agent)
+    if not isinstance(space, spaces.Space):
+        raise bad_value(f"{kind}_space({agent!r})", space, "must be a gymnasium.spaces.Space")
     return space
 
 

@@ -4,10 +4,16 @@ The learner speaks arrays; a wrapped env (`bitcomm.envs.channel_wrapper.BitChann
 agent name. This module is the one place that converts, so nothing above it loops over agents:
 
 - observations `(B, n, D)` float32: each agent's inner observation flattened and zero-padded to the widest
-  (`EnvLayout.obs_sizes` holds each agent's true size); zeros for an agent that is not present;
+  (`EnvLayout.obs_sizes` holds each agent's true size); zeros for an agent that is not present. A Box is
+  flattened as it is; any other space gymnasium can flatten (Discrete, MultiDiscrete and MultiBinary as
+  one-hots and bits, Dict and Tuple of those) by `gymnasium.spaces.flatten`;
+- actions: Discrete ones as indices from 0 (the space's `start` is added on the way in); MultiDiscrete and
+  MultiBinary ones as one index over all their combinations (at most `MAX_JOINT_ACTIONS`; unravelled on the
+  way in), so the learner's categorical head acts on them unchanged; Box ones as flat vectors (reshaped to
+  the space's shape and dtype on the way in);
 - received messages `(B, n, slots, K)` uint8, as the wrapper delivers them;
-- the critic's state `(B, Ds)` float32: the inner env's `state()`, or, where it has none, every agent's
-  padded observation concatenated (`n * D`);
+- the critic's state `(B, Ds)` float32: the inner env's `state()` where it has a `state_space`, or, where it
+  has none, every agent's padded observation concatenated (`n * D`);
 - `alive (B, n)`: the agent is present (in `env.agents`) and acts at this step;
 - rewards `(B, n)`, `dropped (B, n)` (the message the agent sent this step was lost), `ended (B,)`.
 
@@ -32,6 +38,10 @@ from bitcomm.envs.channel_wrapper import BitChannel
 from bitcomm.envs.factory import make_parallel_env
 from bitcomm.errors import bad_value
 
+MAX_JOINT_ACTIONS = 4096
+"""A MultiDiscrete or MultiBinary action space is learned as one categorical over its combinations: this many at
+most (MultiBinary(12), MultiDiscrete([16, 16, 16]))."""
+
 
 @dataclass(frozen=True, eq=False)
 class EnvLayout:
@@ -44,9 +54,9 @@ class EnvLayout:
     bits: int
     delay: int
     discrete: bool
-    """True: every agent's inner action is Discrete; False: every one is a Box."""
+    """True: every agent's inner action is Discrete (or MultiDiscrete, MultiBinary); False: every one is a Box."""
     action_sizes: tuple[int, ...]
-    """Discrete: each agent's number of actions; Box: each agent's flattened action size."""
+    """Discrete: each agent's number of actions (combinations); Box: each agent's flattened action size."""
     low: np.ndarray
     """(n, action_dim) Box lower bounds (padding 0); unused for Discrete."""
     high: np.ndarray
@@ -57,6 +67,10 @@ class EnvLayout:
     """(n,) bool: agents whose inner action the wrapper fixes (`fixed_actions`): their action head learns nothing."""
     recipients: np.ndarray
     """(n, n) bool: [j, x] = x hears j."""
+    obs_spaces: tuple[spaces.Space, ...] = ()
+    """Each agent's inner observation space (what `flat_observation` flattens; `of` fills it)."""
+    action_spaces: tuple[spaces.Space, ...] = ()
+    """Each agent's inner action space (what `inner_action` converts to; `of` fills it)."""
 
     @property
     def n(self) -> int:
@@ -80,6 +94,8 @@ class EnvLayout:
         """Read a wrapped env's spaces (it is reset once, to find whether it has a state and its size)."""
         agents = tuple(env.possible_agents)
         obs_sizes: list[int] = []
+        obs_spaces: list[spaces.Space] = []
+        act_spaces: list[spaces.Space] = []
         kinds: list[bool] = []
         sizes: list[int] = []
         lows: list[np.ndarray] = []
@@ -87,10 +103,24 @@ class EnvLayout:
         for a in agents:
             obs_space = env.observation_space(a)["observation"]
             act_space = env.action_space(a)["action"]
-            obs_sizes.append(int(np.prod(obs_space.shape)))
-            if isinstance(act_space, spaces.Discrete):
+            if not obs_space.is_np_flattenable:
+                raise bad_value(
+                    f"observation_space({a!r})", obs_space,
+                    "learning needs one gymnasium can flatten to a vector (Box, Discrete, MultiDiscrete, "
+                    "MultiBinary, or a Dict or Tuple of them)",
+                )  # fmt: skip
+            obs_sizes.append(spaces.flatdim(obs_space))
+            obs_spaces.append(obs_space)
+            act_spaces.append(act_space)
+            if isinstance(act_space, (spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)):
+                count = int(np.prod(_components(act_space), dtype=np.float64))  # float: no overflow before the check
+                if count > MAX_JOINT_ACTIONS:
+                    raise bad_value(
+                        f"action_space({a!r})", act_space,
+                        f"learning acts on its {count} combinations as one categorical, {MAX_JOINT_ACTIONS} at most",
+                    )  # fmt: skip
                 kinds.append(True)
-                sizes.append(int(act_space.n))
+                sizes.append(count)
                 lows.append(np.zeros(0))
                 highs.append(np.zeros(0))
             elif isinstance(act_space, spaces.Box):
@@ -99,7 +129,11 @@ class EnvLayout:
                 lows.append(np.asarray(act_space.low, np.float32).ravel())
                 highs.append(np.asarray(act_space.high, np.float32).ravel())
             else:
-                raise bad_value(f"action_space({a!r})", act_space, "learning supports Discrete or Box actions")
+                raise bad_value(
+                    f"action_space({a!r})",
+                    act_space,
+                    "learning supports Discrete, MultiDiscrete, MultiBinary or Box actions",
+                )
         if len(set(kinds)) != 1:
             raise bad_value("env", type(env.inner).__name__, "agents mix Discrete and Box actions; use one kind")
         width = max(sizes)
@@ -114,11 +148,16 @@ class EnvLayout:
         return cls(
             agents, tuple(obs_sizes), int(env.slot_senders.shape[1]), int(env.bits), int(env.delay), kinds[0],
             tuple(sizes), low, high, state_size, has_state, fixed, np.asarray(env.recipients, dtype=bool),
+            tuple(obs_spaces), tuple(act_spaces),
         )  # fmt: skip
 
 
 def inner_state(env: Any) -> np.ndarray | None:
-    """The env's global state flattened, or None where it has none (PettingZoo's default raises)."""
+    """The env's global state flattened, or None where it has none: PettingZoo's rule is that an env with a
+    state has a `state_space` (BitChannel keeps the inner one). Without it `state()` may be PettingZoo's default,
+    which raises, or break otherwise (classic envs keep a dict named `state`, so theirs raises TypeError)."""
+    if not hasattr(env, "state_space"):
+        return None
     try:
         return np.asarray(env.state(), dtype=np.float32).ravel()
     except (AttributeError, NotImplementedError):
@@ -159,9 +198,16 @@ class WrappedEnvMaker:
     fixed_actions: dict[str, Any] | None = None
 
     def __call__(self) -> ParallelEnv:
+        inner = make_parallel_env(self.env, self.env_kwargs)
+        # JSON (--topology, --fixed-actions, config.json) writes every agent name as a string: "0" is agent 0
+        named = {str(a): a for a in inner.possible_agents}
+        topology = self.topology
+        if not isinstance(topology, str):
+            topology = [(named.get(s, s), named.get(r, r)) for s, r in topology]
+        fixed = None if self.fixed_actions is None else {named.get(a, a): v for a, v in self.fixed_actions.items()}
         return BitChannel(
-            make_parallel_env(self.env, self.env_kwargs), bits=self.bits, delay=self.delay, flip_prob=self.flip_prob,
-            drop_prob=self.drop_prob, topology=self.topology, fixed_actions=self.fixed_actions,
+            inner, bits=self.bits, delay=self.delay, flip_prob=self.flip_prob, drop_prob=self.drop_prob,
+            topology=topology, fixed_actions=fixed,
         )  # fmt: skip
 
 
@@ -190,7 +236,7 @@ class VecEnv:
         live = set(env.agents)
         for i, a in enumerate(L.agents):
             if a in live and a in obs:
-                out.obs[b, i, : L.obs_sizes[i]] = np.asarray(obs[a]["observation"], np.float32).ravel()
+                out.obs[b, i, : L.obs_sizes[i]] = flat_observation(L.obs_spaces[i], obs[a]["observation"])
                 out.received[b, i] = obs[a]["messages"]
                 out.alive[b, i] = True
         state = inner_state(env) if L.has_state else None
@@ -240,6 +286,35 @@ class VecEnv:
         self.close()
 
     def _action(self, action: np.ndarray, i: int) -> Any:
-        if self.layout.discrete:
-            return int(action)
-        return np.asarray(action[: self.layout.action_sizes[i]], np.float32)
+        return inner_action(self.layout.action_spaces[i], action)
+
+
+def flat_observation(space: spaces.Space, observation: Any) -> np.ndarray:
+    """An inner observation as the flat float32 vector the networks read (a Box's values as they are)."""
+    if isinstance(space, spaces.Box):
+        return np.asarray(observation, np.float32).ravel()
+    return np.asarray(spaces.flatten(space, observation), np.float32)
+
+
+def _components(space: spaces.Space) -> list[int]:
+    """The sizes of a discrete action space's parts: one for Discrete, one per entry of MultiDiscrete, MultiBinary."""
+    if isinstance(space, spaces.Discrete):
+        return [int(space.n)]
+    if isinstance(space, spaces.MultiDiscrete):
+        return [int(k) for k in space.nvec.ravel()]
+    return [2] * spaces.flatdim(space)
+
+
+def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
+    """The inner env's action from the learner's: a Discrete index from 0 shifted by the space's `start`; a
+    MultiDiscrete or MultiBinary one unravelled from the index of its combination (C order: the last entry varies
+    fastest), shaped, shifted and typed as the space; a flat Box vector (padded to the widest agent's) cut to the
+    space's size, shaped and typed as it."""
+    if isinstance(space, spaces.Discrete):
+        return int(action) + int(space.start)
+    if isinstance(space, (spaces.MultiDiscrete, spaces.MultiBinary)):
+        parts = np.array(np.unravel_index(int(action), _components(space))).reshape(space.shape)
+        if isinstance(space, spaces.MultiDiscrete):
+            parts = parts + space.start
+        return parts.astype(space.dtype)
+    return np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape).astype(space.dtype, copy=False)

@@ -21,7 +21,7 @@ import torch
 from PIL import Image, ImageDraw
 
 from bitcomm.channel.core import bits_to_index
-from bitcomm.envs.vector import VecEnv
+from bitcomm.envs.vector import VecEnv, inner_action
 from bitcomm.errors import ConfigError, bad_value
 from bitcomm.learn.env_eval import chunk_seed, load_env_policy
 from bitcomm.learn.env_rollout import env_factory, play
@@ -40,13 +40,14 @@ class EnvEpisodeRecord(NamedTuple):
     fixed: np.ndarray  # (n,) bool: the wrapper fixes this agent's inner action
     action_sizes: tuple[int, ...]
     discrete: bool
-    actions: np.ndarray  # (T, n) int or (T, n, A) float (clipped to the bounds), as the env received them
+    actions: np.ndarray  # (T, n) int: the policy's index; (T, n, A) float: clipped to the bounds, as the env had them
     sent: np.ndarray  # (T, n, K) bits each agent sent at step t
     received: np.ndarray  # (T, n, slots, K) bits each agent read at step t (its input)
     dropped: np.ndarray  # (T, n) the message sent at step t was dropped
     alive: np.ndarray  # (T, n) the agent acted at step t
     team_rewards: np.ndarray  # (T,)
     images: list[np.ndarray]  # T pictures (H, W, 3) uint8, the env after each step
+    action_spaces: tuple[Any, ...] = ()  # each agent's inner action space: a Discrete index shown as the env had it
 
     @property
     def length(self) -> int:
@@ -99,15 +100,17 @@ def record_env_episode(
     return EnvEpisodeRecord(
         cfg.env, L.agents, np.asarray(env.slot_senders), L.delay, L.fixed, L.action_sizes, L.discrete,
         actions, ro.bits[:T, 0].numpy(), ro.received[:T, 0].numpy(), ro.dropped[:T, 0].numpy(),
-        ro.alive[:T, 0].numpy(), ro.rewards[:T, 0].numpy().astype(np.float64), images,
+        ro.alive[:T, 0].numpy(), ro.rewards[:T, 0].numpy().astype(np.float64), images, L.action_spaces,
     )  # fmt: skip
 
 
 def _action(record: EnvEpisodeRecord, t: int, i: int) -> str:
     if record.fixed[i]:
         return "fixed"
-    if record.discrete:
-        return str(int(record.actions[t, i]))
+    if record.discrete:  # as the env received it: start added, a MultiDiscrete's entries unravelled
+        index = record.actions[t, i]
+        action = inner_action(record.action_spaces[i], index) if record.action_spaces else int(index)
+        return " ".join(str(action).split())
     return "[" + " ".join(f"{x:+.2f}" for x in record.actions[t, i, : record.action_sizes[i]]) + "]"
 
 
