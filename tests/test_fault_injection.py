@@ -275,6 +275,9 @@ ONNX_CASES: dict[str, Callable[[dict], object]] = {
     "card version abc": lambda c: c.update(version="abc"),
     "card version from the future": lambda c: c.update(version=99),
     "card without messages": lambda c: c.pop("messages") and None,
+    "card of another grid size": lambda c: c["task"]["env"].update(size=5),
+    "card of another head": lambda c: c.update(messages="onehot"),
+    "card of another bit count": lambda c: c["task"]["channel"].update(bits=3),
     "card not JSON": lambda c: "{not json",
     "card a JSON list": lambda c: "[1]",
 }
