@@ -124,6 +124,19 @@ def test_a_run_stopped_before_its_first_checkpoint_is_trained_again_not_resumed(
     assert checkpoints(run)[-1][0] == 16
 
 
+def test_a_resume_of_a_run_still_before_its_first_checkpoint_names_its_writer(run: Path, capsys) -> None:
+    """Not "train it again without --resume": that run is still playing, in the process holding the lock."""
+    shutil.rmtree(run / "checkpoints")
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(run)], stdout=subprocess.PIPE, text=True, env=ENV)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        line = refused(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64", naming=str(run))
+        assert f"pid {holder.pid}" in line and "another process" in line
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+
+
 @pytest.mark.parametrize(
     "changed",
     [

@@ -51,6 +51,7 @@ from bitcomm.errors import ConfigError, one_line
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
 from bitcomm.plotting import save_figure
+from bitcomm.run_lock import run_lock
 
 ConfigT = TypeVar("ConfigT")
 
@@ -520,6 +521,9 @@ def check_start(out: Path, resume: bool) -> None:
     stopped before its first checkpoint is started again from scratch."""
     if resume:
         if not has_checkpoint(out):
+            if is_run_folder(out):
+                with run_lock(out):  # a run still playing toward its first checkpoint: the line naming its pid
+                    pass
             why = (
                 "this run stopped before its first checkpoint (one is written every --checkpoint-seconds), so "
                 "there is nothing to resume; train it again without --resume"
