@@ -231,6 +231,14 @@ def test_a_wrapped_env_checkpoint_whose_config_does_not_fit_is_one_line(tmp_path
     refused(capsys, ["render", str(tmp_path), "--out", str(tmp_path / "e.gif")], naming="ckpt_000000016.safetensors")
 
 
+def test_a_grid_checkpoint_under_a_wrapped_envs_config_json_is_one_line(run: Path, capsys) -> None:
+    """A run folder's config.json says which loader reads it; a hand-edited one naming a wrapped env over a grid
+    run's checkpoint is one line naming the checkpoint, not a KeyError."""
+    (run / "config.json").write_text(json.dumps({"env": "mpe2.simple_speaker_listener_v4:parallel_env", "channel": {}}))
+    refused(capsys, ["eval", str(run), "--episodes", "2"], naming=resolve(run).name)
+    refused(capsys, ["render", str(run), "--out", str(run / "e.gif")], naming=resolve(run).name)
+
+
 def test_a_torn_last_metrics_row_is_dropped_on_resume(run: Path, capsys) -> None:
     """A kill in the middle of a row leaves it short: that row (past the checkpoint anyway) goes."""
     metrics = run / "metrics.csv"
