@@ -112,6 +112,12 @@ def test_cli_json_has_the_evaluators_keys() -> None:
     assert done.stderr.count("episode ") == 20
 
 
+def test_a_run_past_its_time_bound_says_so() -> None:
+    """Not "agent 0 did not answer within 10 s": every agent answered while the bound lasted."""
+    with pytest.raises(DeployError, match=r"time bound \(--timeout\)"):
+        run_deploy(ORACLE, TINY, 100_000, seed=0, deadline_ms=1, timeout_s=3)
+
+
 def test_an_agent_dying_ends_the_run(monkeypatch: pytest.MonkeyPatch) -> None:
     procs: list[subprocess.Popen[bytes]] = []
     real_popen = subprocess.Popen
