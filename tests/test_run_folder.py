@@ -10,6 +10,7 @@ import math
 import os
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -271,6 +272,18 @@ def test_save_checkpoint_writes_nothing_non_finite(tmp_path: Path) -> None:
         "ckpt_000000001.state.pt",
         "latest.json",
     ]
+
+
+def test_a_checkpoints_files_are_readable_as_the_umask_allows(tmp_path: Path) -> None:
+    """Weights and state alike (safetensors' own writer made the weights owner-only): a shared run folder's
+    checkpoints can be evaluated by whoever can read its config.json."""
+    old = os.umask(0o022)
+    try:
+        weights = save_checkpoint(tmp_path, {}, {"policy": {"w": torch.ones(3)}}, episodes=1, batches=1, state={})
+    finally:
+        os.umask(old)
+    state = weights.with_name("ckpt_000000001.state.pt")
+    assert [stat.S_IMODE(f.stat().st_mode) for f in (weights, state)] == [0o644, 0o644]
 
 
 # ---------------------------------------------------------------------------------------------- checksum
