@@ -125,6 +125,20 @@ def test_a_run_stopped_before_its_first_checkpoint_is_trained_again_not_resumed(
     assert checkpoints(run)[-1][0] == 16
 
 
+def test_a_resume_of_a_run_that_lost_its_latest_json_says_how_to_restore_it(run: Path, capsys) -> None:
+    """Not "train it again without --resume", which would remove its checkpoints: the line names the last one and
+    the latest.json that resumes from it."""
+    episodes, last = checkpoints(run)[-1]
+    (run / "checkpoints" / "latest.json").unlink()
+    argv = ["train", *QUICK, "--out", str(run), "--resume", "--episodes", str(episodes + 16)]
+    line = refused(capsys, *argv, naming=last.name)
+    assert "without --resume" not in line
+    (run / "checkpoints" / "latest.json").write_text(line.split(" as ", 1)[1])
+    rc, err = cli(capsys, *argv)
+    assert rc == 0, err
+    assert checkpoints(run)[-1][0] == episodes + 16
+
+
 def test_a_resume_of_a_run_still_before_its_first_checkpoint_names_its_writer(run: Path, capsys) -> None:
     """Not "train it again without --resume": that run is still playing, in the process holding the lock."""
     shutil.rmtree(run / "checkpoints")

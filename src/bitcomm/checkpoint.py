@@ -262,6 +262,11 @@ def checkpoints(run: Path | str) -> list[tuple[int, Path]]:
     folder = _folder(run)
     if not (folder / LATEST).is_file():
         raise _bad(run, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
+    return complete(folder)
+
+
+def complete(folder: Path) -> list[tuple[int, Path]]:
+    """`checkpoints` of a checkpoints folder whether or not it has its `latest.json`."""
     return [
         (e, folder / f"ckpt_{e:09d}.safetensors")
         for e, kinds in sorted(_stems(folder).items())

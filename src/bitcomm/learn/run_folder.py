@@ -39,6 +39,7 @@ from bitcomm.checkpoint import (
     CHECKPOINTS,
     LATEST,
     clean,
+    complete,
     load_state,
     load_weights,
     read_config,
@@ -524,12 +525,20 @@ def check_start(out: Path, resume: bool) -> None:
             if is_run_folder(out):
                 with run_lock(out):  # a run still playing toward its first checkpoint: the line naming its pid
                     pass
-            why = (
-                "this run stopped before its first checkpoint (one is written every --checkpoint-seconds), so "
-                "there is nothing to resume; train it again without --resume"
-                if is_run_folder(out)
-                else f"no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)"
-            )
+            kept = complete(out / CHECKPOINTS) if (out / CHECKPOINTS).is_dir() else []
+            if kept:  # latest.json lost (deleted, not synced): a fresh start would remove these, never advise it
+                episodes, last = kept[-1]
+                why = (
+                    f"its {CHECKPOINTS}/{LATEST} is missing, though it holds checkpoints up to {last.name}; to "
+                    f'resume from that one, write {LATEST} as {{"checkpoint": "{last.name}", "episodes": {episodes}}}'
+                )
+            elif is_run_folder(out):
+                why = (
+                    "this run stopped before its first checkpoint (one is written every --checkpoint-seconds), so "
+                    "there is nothing to resume; train it again without --resume"
+                )
+            else:
+                why = f"no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)"
             raise ConfigError(f"invalid out={str(out)!r}: {why}")
         return
     if has_checkpoint(out):
