@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -17,6 +18,7 @@ import pytest
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.deploy import DeployError, episode_set, place_episode, run_deploy
 from bitcomm.deploy import world as world_module
+from bitcomm.deploy.agent import Inbox
 from bitcomm.deploy.protocol import pack_datagram, unpack_datagram
 from bitcomm.envs.core import GoalExchangeCore
 from bitcomm.envs.vec import VecGoalExchange
@@ -37,6 +39,26 @@ def test_wire_format_round_trips() -> None:
     assert unpack_datagram(b"junk") is None and unpack_datagram(b"XXXX" + bytes(30)) is None
     task = TaskConfig(EnvConfig(n_agents=3, observes=(2, 0, 1)), ChannelConfig(recipients=((2, 1), (0,), (1,))))
     assert TaskConfig.from_dict(json.loads(json.dumps(task.to_dict()))) == task
+
+
+def test_an_agent_drops_datagrams_it_cannot_read() -> None:
+    """Another run's datagram, one with another bit count and one from a sender the agent does not hear are
+    counted as foreign; the message of its step still arrives, and nothing else is kept."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+        rx.bind(("127.0.0.1", 0))
+        inbox = Inbox(rx, run_id=7, bits=4, senders=[1])
+        four = np.array([1, 0, 1, 1], dtype=np.uint8)
+        for datagram in (
+            pack_datagram(8, 1, 0, 0, 0, four),  # another run
+            pack_datagram(7, 1, 0, 0, 0, np.ones(9, dtype=np.uint8)),  # 9 bits, not 4
+            pack_datagram(7, 60000, 0, 0, 0, four),  # a sender it does not hear
+            b"BCM1" + bytes(3),  # torn header
+            pack_datagram(7, 1, 0, 0, 0, four),  # its message
+        ):
+            tx.sendto(datagram, rx.getsockname())
+        got = inbox.take([1], episode=0, step=0, deadline=time.monotonic() + 2.0)
+    np.testing.assert_array_equal(got[1], four)
+    assert inbox.stats == {"received": 1, "late": 0, "foreign": 4} and not inbox.messages
 
 
 @pytest.mark.parametrize("task", [TINY, TaskConfig(EnvConfig(size=5, n_agents=3, observes=(2, 0, 1)))])
@@ -88,6 +110,12 @@ def test_cli_json_has_the_evaluators_keys() -> None:
     assert EVAL_KEYS <= set(out) and EVAL_KEYS <= set(out["simulator"])
     assert out["mean_episode_length"] == out["simulator"]["mean_episode_length"]
     assert done.stderr.count("episode ") == 20
+
+
+def test_a_run_past_its_time_bound_says_so() -> None:
+    """Not "agent 0 did not answer within 10 s": every agent answered while the bound lasted."""
+    with pytest.raises(DeployError, match=r"time bound \(--timeout\)"):
+        run_deploy(ORACLE, TINY, 100_000, seed=0, deadline_ms=1, timeout_s=3)
 
 
 def test_an_agent_dying_ends_the_run(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -186,6 +186,8 @@ def _bad_onnx(tmp_path: Path) -> Path:
         (["export", "{run}", "--onnx", "{tmp}/no/such/folder/p.onnx"], "onnx"),
         (["export", "{run}", "--onnx", "{tmp}"], "onnx"),
         (["export", "{run}"], "--onnx"),
+        (["export", "{run}", "--onnx", "{run}/checkpoints/ckpt_000000016.safetensors"], "checkpoints folder"),
+        (["export", "{run}", "--onnx", "{run}/checkpoints/latest"], "checkpoints folder"),  # card: latest.json
         (["deploy", "--onnx", "{missing}"], "onnx"),
         (["deploy", "--onnx", "{bad}"], "onnx"),
         (["deploy", "--onnx", "{out}", "--policy", "oracle"], "onnx"),
@@ -208,6 +210,17 @@ def test_bad_input_is_one_line(
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert named in err
     assert not (tmp_path / "p.onnx").exists()
+    assert Controller.load(run).info["episodes"] == 16  # the run is as it was
+
+
+def test_export_never_replaces_a_runs_config(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """`--onnx RUN/config` would write its card to RUN/config.json: one line, and the run's record stays."""
+    run = make_checkpoint(tmp_path / "run")
+    record = '{"seed": 0, "versions": {}}\n'
+    (run / "config.json").write_text(record)
+    assert main(["export", str(run), "--onnx", str(run / "config")]) == 2
+    assert "config.json" in capsys.readouterr().err
+    assert (run / "config.json").read_text() == record and not (run / "config").exists()
 
 
 def test_missing_onnxruntime_says_how_to_install(exported: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:

@@ -83,6 +83,45 @@ def _metadata(**changes: str | None) -> Callable[[Path], str]:
     return tamper
 
 
+def _resigned(change: Callable[[dict, dict], None]) -> Callable[[Path], str]:
+    """Change the latest checkpoint's config and tensors (`change(config, tensors)`) and write it with a checksum
+    that fits: a file another bitcomm version wrote, or a hand-made one, that no checksum refuses."""
+
+    def tamper(run: Path) -> str:
+        from safetensors import safe_open
+        from safetensors.torch import save_file
+
+        from bitcomm.checkpoint import content_sha256
+
+        file = resolve(run)
+        with safe_open(str(file), framework="pt") as f:
+            meta, tensors = dict(f.metadata()), {k: f.get_tensor(k) for k in f.keys()}
+        config = json.loads(meta["config"])
+        change(config, tensors)
+        meta["config"] = json.dumps(config)
+        meta["sha256"] = content_sha256(tensors, meta)
+        save_file(tensors, str(file), metadata=meta)
+        return file.name
+
+    return tamper
+
+
+def _without(prefix: str) -> Callable[[dict, dict], None]:
+    def change(config: dict, tensors: dict) -> None:
+        for key in [k for k in tensors if k.startswith(f"{prefix}.")]:
+            del tensors[key]
+
+    return change
+
+
+def _cut_first(prefix: str) -> Callable[[dict, dict], None]:
+    def change(config: dict, tensors: dict) -> None:
+        key = next(k for k in tensors if k.startswith(f"{prefix}."))
+        tensors[key] = tensors[key][:1].clone()
+
+    return change
+
+
 def _bytes(cut: Callable[[bytes], bytes], state: bool = False) -> Callable[[Path], str]:
     """Replace the bytes of the latest weights (or state) file."""
 
@@ -142,8 +181,15 @@ CASES: dict[str, Callable[[Path], str]] = {
     "weights: truncated": _bytes(lambda d: d[: len(d) // 2]),
     "weights: empty": _bytes(lambda d: b""),
     "weights: header length garbage": _bytes(lambda d: b"\xff" * 8 + d[8:]),
+    "checksummed: config's model not an object": _resigned(lambda c, t: c.update(model=5)),
+    "checksummed: a policy tensor of the wrong shape": _resigned(_cut_first("policy")),
+    "checksummed: no policy weights": _resigned(_without("policy")),
 }
 RESUME_CASES: dict[str, Callable[[Path], str]] = {
+    "checksummed: a config field this bitcomm does not know": _resigned(lambda c, t: c.update(colour="red")),
+    "checksummed: config without its task": _resigned(lambda c, t: c.pop("task")),
+    "checksummed: a critic tensor of the wrong shape": _resigned(_cut_first("critic")),
+    "checksummed: no critic weights": _resigned(_without("critic")),
     "state: missing": _remove_state,
     "state: a flipped byte": _bytes(_flip, state=True),
     "state: truncated": _bytes(lambda d: d[:100], state=True),
@@ -172,6 +218,25 @@ def test_a_tampered_run_is_not_resumed(case: str, run: Path, capsys) -> None:
     argv = ["train", "--out", str(run), "--resume", "--episodes", "48", *QUICK]
     refused(capsys, argv, naming=name)
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == before  # nothing written
+
+
+def test_a_wrapped_env_checkpoint_whose_config_does_not_fit_is_one_line(tmp_path: Path, capsys) -> None:
+    """eval and render read a wrapped env's config from the checkpoint: a channel field this bitcomm does not
+    know is one line naming the file, as on --resume."""
+    from bitcomm.checkpoint import save_checkpoint
+
+    config = {"env": "mpe2.simple_speaker_listener_v4:parallel_env", "channel": {"colour": "red"}}
+    save_checkpoint(tmp_path, config, {"policy": {"w": torch.zeros(1)}}, 16, 1, {})
+    refused(capsys, ["eval", str(tmp_path), "--episodes", "2"], naming="ckpt_000000016.safetensors")
+    refused(capsys, ["render", str(tmp_path), "--out", str(tmp_path / "e.gif")], naming="ckpt_000000016.safetensors")
+
+
+def test_a_grid_checkpoint_under_a_wrapped_envs_config_json_is_one_line(run: Path, capsys) -> None:
+    """A run folder's config.json says which loader reads it; a hand-edited one naming a wrapped env over a grid
+    run's checkpoint is one line naming the checkpoint, not a KeyError."""
+    (run / "config.json").write_text(json.dumps({"env": "mpe2.simple_speaker_listener_v4:parallel_env", "channel": {}}))
+    refused(capsys, ["eval", str(run), "--episodes", "2"], naming=resolve(run).name)
+    refused(capsys, ["render", str(run), "--out", str(run / "e.gif")], naming=resolve(run).name)
 
 
 def test_a_torn_last_metrics_row_is_dropped_on_resume(run: Path, capsys) -> None:
@@ -218,6 +283,9 @@ ONNX_CASES: dict[str, Callable[[dict], object]] = {
     "card version abc": lambda c: c.update(version="abc"),
     "card version from the future": lambda c: c.update(version=99),
     "card without messages": lambda c: c.pop("messages") and None,
+    "card of another grid size": lambda c: c["task"]["env"].update(size=5),
+    "card of another head": lambda c: c.update(messages="onehot"),
+    "card of another bit count": lambda c: c["task"]["channel"].update(bits=3),
     "card not JSON": lambda c: "{not json",
     "card a JSON list": lambda c: "[1]",
 }

@@ -10,6 +10,7 @@ import math
 import os
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -122,6 +123,33 @@ def test_a_run_stopped_before_its_first_checkpoint_is_trained_again_not_resumed(
     rc, err = cli(capsys, "train", *QUICK, "--out", str(run), "--episodes", "16")
     assert rc == 0, err
     assert checkpoints(run)[-1][0] == 16
+
+
+def test_a_resume_of_a_run_that_lost_its_latest_json_says_how_to_restore_it(run: Path, capsys) -> None:
+    """Not "train it again without --resume", which would remove its checkpoints: the line names the last one and
+    the latest.json that resumes from it."""
+    episodes, last = checkpoints(run)[-1]
+    (run / "checkpoints" / "latest.json").unlink()
+    argv = ["train", *QUICK, "--out", str(run), "--resume", "--episodes", str(episodes + 16)]
+    line = refused(capsys, *argv, naming=last.name)
+    assert "without --resume" not in line
+    (run / "checkpoints" / "latest.json").write_text(line.split(" as ", 1)[1])
+    rc, err = cli(capsys, *argv)
+    assert rc == 0, err
+    assert checkpoints(run)[-1][0] == episodes + 16
+
+
+def test_a_resume_of_a_run_still_before_its_first_checkpoint_names_its_writer(run: Path, capsys) -> None:
+    """Not "train it again without --resume": that run is still playing, in the process holding the lock."""
+    shutil.rmtree(run / "checkpoints")
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(run)], stdout=subprocess.PIPE, text=True, env=ENV)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        line = refused(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64", naming=str(run))
+        assert f"pid {holder.pid}" in line and "another process" in line
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
 
 
 @pytest.mark.parametrize(
@@ -266,6 +294,18 @@ def test_save_checkpoint_writes_nothing_non_finite(tmp_path: Path) -> None:
         "ckpt_000000001.state.pt",
         "latest.json",
     ]
+
+
+def test_a_checkpoints_files_are_readable_as_the_umask_allows(tmp_path: Path) -> None:
+    """Weights and state alike (safetensors' own writer made the weights owner-only): a shared run folder's
+    checkpoints can be evaluated by whoever can read its config.json."""
+    old = os.umask(0o022)
+    try:
+        weights = save_checkpoint(tmp_path, {}, {"policy": {"w": torch.ones(3)}}, episodes=1, batches=1, state={})
+    finally:
+        os.umask(old)
+    state = weights.with_name("ckpt_000000001.state.pt")
+    assert [stat.S_IMODE(f.stat().st_mode) for f in (weights, state)] == [0o644, 0o644]
 
 
 # ---------------------------------------------------------------------------------------------- checksum

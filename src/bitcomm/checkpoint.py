@@ -140,7 +140,7 @@ def save_checkpoint(
     """Write `ckpt_<episodes>.state.pt` + `.safetensors` and point `latest.json` at them; then, with
     `keep`, `prune` to the last `keep` and the best (lowest `rank`, by default `rolling_length`). Nothing is
     written if a value is not finite."""
-    from safetensors.torch import save_file
+    from safetensors.torch import save
 
     refuse_nonfinite(run, episodes, **weights, state=state)
     folder = run / CHECKPOINTS
@@ -163,7 +163,9 @@ def save_checkpoint(
         "state_sha256": state_sha,
     }
     meta["sha256"] = content_sha256(tensors, meta)
-    _atomic(weights_path, lambda p: save_file(tensors, str(p), metadata=meta))
+    # the bytes written by Python, not by `save_file`, which makes its files owner-only whatever the umask: the
+    # weights are read as the run's other files are (a teammate's `bitcomm eval` on a shared run folder)
+    _atomic(weights_path, lambda p: p.write_bytes(save(tensors, metadata=meta)))
     _point(folder / LATEST, episodes, batches)
     best = _best(checkpoints(folder))
     _point(folder / BEST, best, _batches(folder, best, episodes, batches))
@@ -260,6 +262,11 @@ def checkpoints(run: Path | str) -> list[tuple[int, Path]]:
     folder = _folder(run)
     if not (folder / LATEST).is_file():
         raise _bad(run, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
+    return complete(folder)
+
+
+def complete(folder: Path) -> list[tuple[int, Path]]:
+    """`checkpoints` of a checkpoints folder whether or not it has its `latest.json`."""
     return [
         (e, folder / f"ckpt_{e:09d}.safetensors")
         for e, kinds in sorted(_stems(folder).items())

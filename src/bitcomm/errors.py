@@ -21,6 +21,11 @@ def check_instance(name: str, value: object, kind: type, allowed: str) -> None:
         raise bad_value(name, value, f"must be {allowed}")
 
 
+def one_line(err: BaseException) -> str:
+    """`Type: message` of an exception on one line (torch's `load_state_dict` message spans several)."""
+    return f"{type(err).__name__}: {' '.join(str(err).split())}"
+
+
 def check_int(name: str, value: object, least: int) -> None:
     """One error line unless `value` is an integer >= `least` (a bool or 2.5 is not; `name` as a flag)."""
     if not is_integer(value) or value < least:  # type: ignore[operator]

@@ -25,11 +25,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _check_output(path: Path) -> None:
-    """Refuse, before any work, an output that cannot be written."""
+    """Refuse, before any work, an output that cannot be written, or that would replace a file of a training run
+    (a checkpoint, `latest.json`, config.json: `--onnx RUN/checkpoints/latest` writes its card to latest.json)."""
+    from bitcomm.checkpoint import LATEST
+    from bitcomm.learn.run_folder import RUN_FILES, is_run_folder
+    from bitcomm.policies.onnx_policy import sidecar_path
+
     if path.is_dir():
         raise bad_value("onnx", str(path), "is a folder; give a file name such as policy.onnx")
     if not path.parent.is_dir():
         raise bad_value("onnx", str(path), f"its folder {str(path.parent)!r} does not exist")
+    if (path.parent / LATEST).is_file():
+        raise bad_value("onnx", str(path), "is in a run's checkpoints folder, where it could replace the run's files")
+    for target in (path, sidecar_path(path)):
+        if target.name in RUN_FILES and is_run_folder(target.parent):
+            raise bad_value("onnx", str(path), f"it or its card would replace the run's {target.name}")
 
 
 def run(args: argparse.Namespace) -> int:

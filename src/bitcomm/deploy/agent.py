@@ -27,10 +27,12 @@ from bitcomm.policies.source import PolicySource
 
 
 class Inbox:
-    """Datagrams from peers, kept by (sender, episode, step) until their step is played."""
+    """Datagrams from peers, kept by (sender, episode, step) until their step is played. One this agent cannot
+    read (another run's, one of `bits` bits other than the task's, one from a sender it does not hear) is counted
+    as foreign and dropped: a stray or garbled datagram never stops an agent."""
 
-    def __init__(self, sock: socket.socket, run_id: int) -> None:
-        self.sock, self.run_id = sock, run_id
+    def __init__(self, sock: socket.socket, run_id: int, bits: int, senders: list[int]) -> None:
+        self.sock, self.run_id, self.bits, self.senders = sock, run_id, bits, set(senders)
         self.messages: dict[tuple[int, int, int], np.ndarray] = {}
         self.played: tuple[int, int] = (-1, -1)  # (episode, step) of the latest messages read
         self.stats = {"received": 0, "late": 0, "foreign": 0}
@@ -45,7 +47,7 @@ class Inbox:
                 return
             self.sock.settimeout(0.0)
             d = unpack_datagram(data)
-            if d is None or d.run_id != self.run_id:
+            if d is None or d.run_id != self.run_id or d.bits.size != self.bits or d.sender not in self.senders:
                 self.stats["foreign"] += 1
             elif (d.episode, d.step) <= self.played:
                 self.stats["late"] += 1  # its step was already played without it
@@ -87,7 +89,7 @@ def run_agent(world: tuple[str, int], agent: int, token: str) -> int:
     slot_senders = [int(j) for j in cfg["slot_senders"]]  # who I hear, per input slot (-1: nobody)
     hears = [j for j in slot_senders if j >= 0]
     deadline_s = float(cfg["deadline_ms"]) / 1000.0
-    inbox = Inbox(udp, int(cfg["run_id"]))
+    inbox = Inbox(udp, int(cfg["run_id"]), K, hears)
     stats = {"sent": 0, "dropped": 0, "missing": 0}
     seq = 0
     ctl.send({"type": "ready", "agent": agent})

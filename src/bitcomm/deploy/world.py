@@ -177,6 +177,7 @@ class _Agents:
                 raise DeployError(f"agent {i} closed its connection") from None
             except TimeoutError:
                 self.check_alive()
+                self.deadline(0.0)  # the wait was cut by the run's time bound: say that, not that the agent hung
                 ignored = f" ({self.malformed} malformed control lines ignored)" if self.malformed else ""
                 raise DeployError(f"agent {i} did not answer within {within:g} s{ignored}") from None
             if msg.get("type") == kind and (fits is None or fits(msg)):

@@ -16,8 +16,10 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import load_weights
+from bitcomm.errors import ConfigError, one_line
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_rollout import make_vec, play
+from bitcomm.learn.run_folder import config_of
 from bitcomm.policies.mlp import MlpPolicy
 
 EVAL_CHUNK = 256
@@ -52,10 +54,15 @@ def chunk_seed(seed: int, chunk: int) -> np.random.SeedSequence:
 def load_env_policy(path: Path | str) -> tuple[EnvTrainConfig, MlpPolicy]:
     """The config and policy of a wrapped-env checkpoint (a run folder: its latest)."""
     weights, info = load_weights(path)
-    cfg = EnvTrainConfig.from_dict(info["config"])
+    cfg = config_of(info["path"], info["config"], EnvTrainConfig.from_dict)
     vec = make_vec(cfg, 1)
     policy = MlpPolicy(vec.layout, cfg.messages, cfg.hidden, cfg.obs_norm)
-    policy.load_state_dict(weights["policy"])
+    try:
+        policy.load_state_dict(weights["policy"])
+    except (KeyError, RuntimeError) as err:
+        raise ConfigError(
+            f"invalid checkpoint={info['path']!r}: weights do not fit its config ({one_line(err)})"
+        ) from None
     return cfg, policy.eval()
 
 

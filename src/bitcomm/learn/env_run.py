@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import is_env_config, read_config
+from bitcomm.checkpoint import is_env_config, read_config, resolve
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
@@ -29,6 +29,7 @@ from bitcomm.learn.run_folder import (
     Logger,
     Progress,
     check_start,
+    config_of,
     finite_or_stop,
     prepare,
     read_json_object,
@@ -100,6 +101,6 @@ def env_run_config(path: Path | str) -> EnvTrainConfig | None:
     p = Path(path)
     if p.is_dir() and (p / "config.json").is_file():
         record = read_json_object(p / "config.json", "config")
-        return EnvTrainConfig.from_dict(record) if is_env_config(record) else None
+        return config_of(p / "config.json", record, EnvTrainConfig.from_dict) if is_env_config(record) else None
     config = read_config(p)
-    return EnvTrainConfig.from_dict(config) if is_env_config(config) else None
+    return config_of(resolve(p), config, EnvTrainConfig.from_dict) if is_env_config(config) else None

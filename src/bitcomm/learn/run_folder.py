@@ -39,6 +39,7 @@ from bitcomm.checkpoint import (
     CHECKPOINTS,
     LATEST,
     clean,
+    complete,
     load_state,
     load_weights,
     read_config,
@@ -47,10 +48,11 @@ from bitcomm.checkpoint import (
     save_checkpoint,
 )
 from bitcomm.config import TaskConfig
-from bitcomm.errors import ConfigError
+from bitcomm.errors import ConfigError, one_line
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
 from bitcomm.plotting import save_figure
+from bitcomm.run_lock import run_lock
 
 ConfigT = TypeVar("ConfigT")
 
@@ -447,11 +449,25 @@ def load_optimizer(opt: torch.optim.Optimizer, state: dict[str, Any]) -> None:
 
 
 def restore_learner(learner: Any, saved: dict[str, Any]) -> None:
-    """Weights, code book and optimizer moments of a checkpoint's state into a fresh Learner."""
-    for name, sd in saved["weights"].items():
-        getattr(learner, name).load_state_dict(sd)
-    load_optimizer(learner.opt_policy, saved["opt_policy"])
-    load_optimizer(learner.opt_critic, saved["opt_critic"])
+    """Weights, code book and optimizer moments of a checkpoint's state into a fresh Learner (built from the
+    checkpoint's config); one line naming the checkpoint where they do not fit it, never a learner resumed with
+    some of its networks freshly initialised."""
+
+    def bad(why: str) -> ConfigError:
+        return ConfigError(f"invalid checkpoint={saved.get('info', {}).get('path')!r}: {why}")
+
+    needed, held = sorted(checkpoint_weights(learner)), sorted(saved["weights"])
+    if held != needed:
+        raise bad(f"it holds the weights of {held}, its config needs {needed}")
+    try:
+        for name, sd in saved["weights"].items():
+            getattr(learner, name).load_state_dict(sd)
+        load_optimizer(learner.opt_policy, saved["opt_policy"])
+        load_optimizer(learner.opt_critic, saved["opt_critic"])
+    except ConfigError:
+        raise
+    except (KeyError, TypeError, ValueError, RuntimeError) as err:
+        raise bad(f"it does not fit its config ({one_line(err)})") from None
     for name in WATCHES:
         if f"{name}_start" in saved:
             getattr(learner, name).start = float(saved[f"{name}_start"])
@@ -465,7 +481,22 @@ def resume_config(out: Path, from_dict: Callable[[dict[str, Any]], ConfigT], epi
     d = read_config(out)
     if episodes is not None:
         d["episodes"] = episodes
-    return from_dict(d)
+    return config_of(resolve(out), d, from_dict)
+
+
+def config_of(source: Path | str, d: dict[str, Any], from_dict: Callable[[dict[str, Any]], ConfigT]) -> ConfigT:
+    """`from_dict(d)` of a config read from `source` (a checkpoint, a config.json), or one line naming it where the
+    config does not fit this bitcomm's: a key missing or unknown, a value of the wrong type (a hand-edited file, or
+    one another version wrote)."""
+    try:
+        return from_dict(d)
+    except ConfigError:  # a value out of range names itself
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        what = "config" if Path(source).name == "config.json" else "checkpoint"
+        raise ConfigError(
+            f"invalid {what}={str(source)!r}: its config does not fit this bitcomm ({one_line(err)})"
+        ) from None
 
 
 def has_checkpoint(out: Path) -> bool:
@@ -491,12 +522,23 @@ def check_start(out: Path, resume: bool) -> None:
     stopped before its first checkpoint is started again from scratch."""
     if resume:
         if not has_checkpoint(out):
-            why = (
-                "this run stopped before its first checkpoint (one is written every --checkpoint-seconds), so "
-                "there is nothing to resume; train it again without --resume"
-                if is_run_folder(out)
-                else f"no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)"
-            )
+            if is_run_folder(out):
+                with run_lock(out):  # a run still playing toward its first checkpoint: the line naming its pid
+                    pass
+            kept = complete(out / CHECKPOINTS) if (out / CHECKPOINTS).is_dir() else []
+            if kept:  # latest.json lost (deleted, not synced): a fresh start would remove these, never advise it
+                episodes, last = kept[-1]
+                why = (
+                    f"its {CHECKPOINTS}/{LATEST} is missing, though it holds checkpoints up to {last.name}; to "
+                    f'resume from that one, write {LATEST} as {{"checkpoint": "{last.name}", "episodes": {episodes}}}'
+                )
+            elif is_run_folder(out):
+                why = (
+                    "this run stopped before its first checkpoint (one is written every --checkpoint-seconds), so "
+                    "there is nothing to resume; train it again without --resume"
+                )
+            else:
+                why = f"no checkpoint to resume from ({CHECKPOINTS}/{LATEST} missing)"
             raise ConfigError(f"invalid out={str(out)!r}: {why}")
         return
     if has_checkpoint(out):

@@ -20,7 +20,7 @@ import torch
 
 from bitcomm.checkpoint import load_grid_weights
 from bitcomm.config import TaskConfig
-from bitcomm.errors import ConfigError
+from bitcomm.errors import ConfigError, one_line
 from bitcomm.policies.agent import act
 from bitcomm.policies.agent_policies import agent_batch
 from bitcomm.policies.networks import ModelConfig, PolicyNet
@@ -57,9 +57,9 @@ class Controller:
         try:
             net = PolicyNet(TaskConfig.from_dict(config["task"]), model_from_dict(config["model"]))
             net.load_state_dict(weights["policy"])
-        except (KeyError, TypeError, RuntimeError) as err:
+        except (KeyError, TypeError, AttributeError, RuntimeError) as err:
             raise ConfigError(
-                f"invalid checkpoint={str(path)!r}: weights do not fit its config ({type(err).__name__}: {err})"
+                f"invalid checkpoint={info['path']!r}: weights do not fit its config ({one_line(err)})"
             ) from None
         return cls(net, config, seed, {k: v for k, v in info.items() if k != "config"})
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from bitcomm.channel.core import index_to_bits
 from bitcomm.config import TaskConfig
+from bitcomm.envs.core import N_MOVES
 from bitcomm.errors import ConfigError
 from bitcomm.policies.agent_policies import agent_batch
 
@@ -96,6 +97,15 @@ def check_card(path: str | Path, metadata: Any) -> None:
         raise bad(f"its card does not describe the task it plays ({why})") from None
 
 
+def card_shapes(metadata: dict[str, Any]) -> list[list[int]]:
+    """The shapes, batch axis left out, of the graph's inputs and outputs (`INPUTS`, `OUTPUTS`) that a checked
+    card describes."""
+    task = TaskConfig.from_dict(metadata["task"])
+    bits = task.channel.bits
+    messages = bits if metadata["messages"] == "bitwise" else 2**bits
+    return [[2, task.env.size, task.env.size], [task.slots, bits], [N_MOVES], [messages]]
+
+
 class OnnxController:
     """An exported policy network in an onnxruntime session, acting for any agent of its task."""
 
@@ -125,9 +135,13 @@ class OnnxController:
         except ValueError:
             metadata = {}
         check_card(path, metadata)
-        names = tuple(i.name for i in session.get_inputs()), tuple(o.name for o in session.get_outputs())
+        tensors = (*session.get_inputs(), *session.get_outputs())
+        names = tuple(t.name for t in tensors[:2]), tuple(t.name for t in tensors[2:])
         if names != (INPUTS, OUTPUTS):
             raise ConfigError(f"invalid onnx={str(path)!r}: tensors {names} are not {(INPUTS, OUTPUTS)}")
+        shapes, card = [list(t.shape[1:]) for t in tensors], card_shapes(metadata)
+        if shapes != card:  # a card edited by hand, or copied from another export: it would play on the wrong inputs
+            raise ConfigError(f"invalid onnx={str(path)!r}: its graph's shapes {shapes} are not its card's {card}")
         return cls(session, metadata, seed)
 
     def logits(self, planes: np.ndarray, received_bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
