@@ -53,3 +53,10 @@ def threads(monkeypatch):
     watch = ThreadWatch(monkeypatch)
     yield watch
     watch._set(watch.before)
+
+
+@pytest.fixture
+def trust_test_envs(monkeypatch, request) -> None:
+    """Trust the test module's own toy envs (`f"{__name__}:SomeEnv"`) when a run trained on one is read back, as a
+    user vouches for their own env package (`BITCOMM_TRUST_ENVS`, docs/env_learning.md)."""
+    monkeypatch.setenv("BITCOMM_TRUST_ENVS", request.module.__name__.split(".")[0])

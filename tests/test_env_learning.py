@@ -433,6 +433,7 @@ def test_cli_refuses_a_bad_env_before_it_prints_or_writes(
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.usefixtures("trust_test_envs")  # the run is read back: eval, --resume
 def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = str(tmp_path / "run")
     argv = ["train", "--env", SPEC, "--bits", "2", "--num-envs", "8", "--episodes", "8", "--hidden", "16"]
@@ -452,6 +453,7 @@ def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: p
 
 
 # ---------------------------------------------------------------------------------------------- learning
+@pytest.mark.usefixtures("trust_test_envs")  # evaluate_env reads the run back
 def test_improved_bitwise_learns_to_use_the_channel(tmp_path: Path) -> None:
     """The listener can earn 1 per episode only by reading the speaker's message; with every message dropped
     it is right half the time. Improved + bitwise beats the same learner with the channel cut."""

@@ -20,6 +20,7 @@ from bitcomm.learn.env_run import train_env
 from bitcomm.studies.env_render import EnvEpisodeRecord, record_env_episode, step_lines
 
 SPEC = f"{__name__}:DrawnSignalEnv"
+pytestmark = pytest.mark.usefixtures("trust_test_envs")  # every test reads back a run on this module's env
 
 
 class DrawnSignalEnv(ParallelEnv):

@@ -1,7 +1,8 @@
 """Every corrupt or tampered file is refused with one line naming it (exit status 2, no traceback):
 `latest.json`, a checkpoint's metadata and bytes, its resume state, config.json and metrics.csv on
-`--resume`, an ONNX policy's card; and the deploy world's control port ignores and counts malformed
-lines instead of crashing. Each case runs the real CLI in-process (`bitcomm.cli.main`)."""
+`--resume`, an ONNX policy's card; a recorded env the user did not vouch for is never built (its spec is
+code the run folder chooses); and the deploy world's control port ignores and counts malformed lines
+instead of crashing. Each case runs the real CLI in-process (`bitcomm.cli.main`)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,6 +21,7 @@ import torch
 from bitcomm.checkpoint import resolve
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError
 
 TASK = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=4))
 QUICK = ["--threads", "1", "--quiet", "--eval-episodes", "0", "--checkpoint-seconds", "0"]
@@ -246,6 +249,90 @@ def test_a_torn_last_metrics_row_is_dropped_on_resume(run: Path, capsys) -> None
     assert main(["train", "--out", str(run), "--resume", "--episodes", "48", *QUICK]) == 0
     rows = metrics.read_text().splitlines()
     assert [r.split(",")[0] for r in rows[1:]] == ["1", "2", "3"]
+
+
+# ---------------------------------------------------------------------------------------------- recorded envs
+MPE = "mpe2.simple_speaker_listener_v4:parallel_env"
+MINE = f"{__name__}:speaker_listener"
+
+
+def speaker_listener(**kwargs: Any) -> Any:
+    """A user's own env package: mpe2's speaker-listener under a name no trusted package owns."""
+    from mpe2 import simple_speaker_listener_v4
+
+    return simple_speaker_listener_v4.parallel_env(**kwargs)
+
+
+@pytest.fixture(scope="module")
+def env_trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from bitcomm.learn.env_config import EnvTrainConfig
+    from bitcomm.learn.env_run import train_env
+
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("env") / "run"
+    train_env(EnvTrainConfig(MINE, num_envs=4, episodes=8, hidden=(8, 8), checkpoint_seconds=0.0), out, progress=False)
+    return out
+
+
+@pytest.fixture
+def env_run(env_trained: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A copy of a run on the user's env, read with only the default packages trusted."""
+    monkeypatch.delenv("BITCOMM_TRUST_ENVS", raising=False)
+    return Path(shutil.copytree(env_trained, tmp_path / "run"))
+
+
+def _recorded_env(spec: str, **kwargs: Any) -> Callable[[Path], str]:
+    """Make the run name another env: in config.json and in its latest checkpoint, re-signed."""
+    resign = _resigned(lambda c, t: c.update(env=spec, env_kwargs=kwargs))
+
+    def tamper(run: Path) -> str:
+        record = json.loads((run / "config.json").read_text())
+        (run / "config.json").write_text(json.dumps({**record, "env": spec, "env_kwargs": kwargs}))
+        return resign(run)
+
+    return tamper
+
+
+def test_a_run_naming_os_system_as_its_env_runs_nothing(env_run: Path, tmp_path: Path, capsys) -> None:
+    """eval, render and --resume refuse, before importing anything, an env the user did not vouch for, with one
+    line saying how to vouch for it."""
+    pwned = tmp_path / "PWNED"
+    _recorded_env("os:system", command=f"touch {pwned}")(env_run)
+    for argv in (
+        ["eval", str(env_run), "--episodes", "2"],
+        ["render", str(env_run), "--out", str(tmp_path / "e.gif")],
+        ["train", "--resume", "--out", str(env_run), "--episodes", "16", *QUICK],
+    ):
+        line = refused(capsys, argv, naming="invalid env='os:system'")
+        assert "--env os:system" in line and "BITCOMM_TRUST_ENVS=os" in line
+    assert not pwned.exists()
+
+
+def test_a_trusted_package_vouches_only_for_factories_it_defines() -> None:
+    """mpe2's factories are made by pettingzoo's `parallel_wrapper_fn`: trusted; a function a pettingzoo module
+    merely imported is not pettingzoo's."""
+    from bitcomm.envs.factory import check_recorded_env
+
+    check_recorded_env(MPE, "config.json")
+    with pytest.raises(ConfigError, match="'defaultdict' is defined in 'collections', outside the trusted packages"):
+        check_recorded_env("pettingzoo.utils.conversions:defaultdict", "config.json")
+
+
+def test_bitcomm_trust_envs_lets_a_users_env_package_through(env_run: Path, monkeypatch, capsys) -> None:
+    refused(capsys, ["eval", str(env_run), "--episodes", "2"], naming=f"BITCOMM_TRUST_ENVS={__name__}")
+    monkeypatch.setenv("BITCOMM_TRUST_ENVS", f"labenvs, {__name__}")
+    assert main(["eval", str(env_run), "--episodes", "2"]) == 0
+
+
+def test_an_mpe2_run_evaluates_with_nothing_trusted_by_hand(env_run: Path) -> None:
+    _recorded_env(MPE)(env_run)  # the same env under its trusted name
+    assert main(["eval", str(env_run), "--episodes", "2"]) == 0
+
+
+def test_a_resume_with_the_recorded_env_typed_trusts_it(env_run: Path, capsys) -> None:
+    argv = ["train", "--resume", "--out", str(env_run), "--episodes", "16", *QUICK]
+    refused(capsys, argv, naming=f"type --env {MINE}")
+    assert main([*argv, "--env", MINE]) == 0
 
 
 # ---------------------------------------------------------------------------------------------- ONNX

@@ -82,11 +82,14 @@ def env_config_from_args(args: argparse.Namespace) -> EnvTrainConfig:
 def resumed_env_config(args: argparse.Namespace, out: Path) -> EnvTrainConfig:
     """The config of the wrapped-env run in `out`, with the budget, the env's workers and how often it saves as typed
     now; one line for any other flag typed with a value the run was not trained with."""
+    from bitcomm.checkpoint import resolve
+    from bitcomm.envs.factory import check_recorded_env
     from bitcomm.learn.env_config import EnvTrainConfig
     from bitcomm.learn.run_folder import resume_config
     from bitcomm.policies.source import given_task_flags
 
     cfg = resume_config(out, EnvTrainConfig.from_dict, args.episodes)
+    check_recorded_env(cfg.env, resolve(out), getattr(args, "env", None))  # before its module is imported
     typed = {**given_task_flags(args), **env_overrides(args)}  # the grid's task flags are refused below, by name
     for name in ("env", "env_kwargs", "topology", "fixed_actions", "obs_norm", "env_workers", "estimator", "messages"):
         if getattr(args, name, None) is not None:
@@ -151,9 +154,8 @@ def train(args: argparse.Namespace) -> int:
     checkpoint = train_env(cfg, out, resume=args.resume, progress=not args.quiet)
     print(f"checkpoint: {checkpoint}")
     if args.eval_episodes:
-        print_env_result(
-            evaluate_env(checkpoint, args.eval_episodes, cfg.seed), False, f"eval (sampling, seed {cfg.seed})"
-        )
+        result = evaluate_env(checkpoint, args.eval_episodes, cfg.seed, typed_env=cfg.env)  # typed, or checked above
+        print_env_result(result, False, f"eval (sampling, seed {cfg.seed})")
     return 0
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import load_weights
+from bitcomm.envs.factory import check_recorded_env
 from bitcomm.errors import ConfigError, one_line
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_rollout import make_vec, play
@@ -51,10 +52,12 @@ def chunk_seed(seed: int, chunk: int) -> np.random.SeedSequence:
     return np.random.SeedSequence(seed, spawn_key=(chunk,))
 
 
-def load_env_policy(path: Path | str) -> tuple[EnvTrainConfig, MlpPolicy]:
-    """The config and policy of a wrapped-env checkpoint (a run folder: its latest)."""
+def load_env_policy(path: Path | str, typed_env: str | None = None) -> tuple[EnvTrainConfig, MlpPolicy]:
+    """The config and policy of a wrapped-env checkpoint (a run folder: its latest). The env it records is built
+    only if trusted (`check_recorded_env`): `typed_env` is the spec the caller's user typed, if any."""
     weights, info = load_weights(path)
     cfg = config_of(info["path"], info["config"], EnvTrainConfig.from_dict)
+    check_recorded_env(cfg.env, info["path"], typed_env)
     vec = make_vec(cfg, 1)
     policy = MlpPolicy(vec.layout, cfg.messages, cfg.hidden, cfg.obs_norm)
     try:
@@ -67,10 +70,16 @@ def load_env_policy(path: Path | str) -> tuple[EnvTrainConfig, MlpPolicy]:
 
 
 def evaluate_env(
-    path: Path | str, episodes: int, seed: int, drop_prob: float | None = None, greedy: bool = False
+    path: Path | str,
+    episodes: int,
+    seed: int,
+    drop_prob: float | None = None,
+    greedy: bool = False,
+    typed_env: str | None = None,
 ) -> EnvEvalResult:
-    """Play `episodes` seeded episodes with the policy of `path` on its env (channel drops changed by `drop_prob`)."""
-    cfg, policy = load_env_policy(path)
+    """Play `episodes` seeded episodes with the policy of `path` on its env (channel drops changed by `drop_prob`;
+    `typed_env` as in `load_env_policy`)."""
+    cfg, policy = load_env_policy(path, typed_env)
     vec = make_vec(cfg, min(episodes, EVAL_CHUNK), drop_prob)
     generator = torch.Generator().manual_seed(seed)
     returns: list[np.ndarray] = []

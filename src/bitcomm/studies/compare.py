@@ -362,10 +362,11 @@ def _plays(run: Run, episodes: int, seed: int) -> dict[str, Callable[[], Any]]:
     from bitcomm.policies.evaluation import evaluate_checkpoint
 
     if isinstance(run.train, EnvTrainConfig):
+        typed = run.train.env  # the spec typed on this `compare --env`: trusted as typed
         return {
-            "sampled": lambda: evaluate_env(run.folder, episodes, seed),
-            "greedy": lambda: evaluate_env(run.folder, episodes, seed, greedy=True),
-            "cut": lambda: evaluate_env(run.folder, episodes, seed, drop_prob=1.0),
+            "sampled": lambda: evaluate_env(run.folder, episodes, seed, typed_env=typed),
+            "greedy": lambda: evaluate_env(run.folder, episodes, seed, greedy=True, typed_env=typed),
+            "cut": lambda: evaluate_env(run.folder, episodes, seed, drop_prob=1.0, typed_env=typed),
         }
     task = run.train.task
     cut = dataclasses.replace(task, channel=dataclasses.replace(task.channel, drop_prob=1.0))
