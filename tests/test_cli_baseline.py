@@ -82,6 +82,8 @@ def test_human_readable_output() -> None:
         (["--drop-prob", "-1"], "drop.prob", "-1"),
         (["--delay", "0"], "delay", "0"),
         (["--observes", "0,1"], "observes", r"\(0, 1\)"),
+        # nobody sees agent 2's goal: the map is at fault, not the recipients (no recipients could fix it)
+        (["--size", "3", "--bits", "4", "--agents", "3", "--observes", "1,0,0"], "observes", r"\(1, 0, 0\).*agent 2"),
         (["--bits", "6"], "bits", "6"),
         (["--size", "ten"], "size", "ten"),
         (["--size", "2.5"], "size", "2.5"),

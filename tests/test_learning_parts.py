@@ -315,6 +315,18 @@ def test_training_episodes_are_truncated_at_train_max_steps_but_the_task_is_not(
     assert make_train_config("reinforced", TINY, train_max_steps=0).training_task == TINY
 
 
+def test_a_move_or_message_that_lands_after_train_max_steps_is_refused_naming_train_max_steps():
+    """A training episode must let a move take effect and a message arrive; the task's own max_steps (20) is not
+    what is short, so the error names train_max_steps, not max_steps."""
+    slow_moves = dataclasses.replace(TINY, env=dataclasses.replace(TINY.env, act_delay=5))
+    with pytest.raises(ConfigError, match=r"^invalid act-delay=5: must be < train_max_steps \(5\)$"):
+        make_train_config("reinforced", slow_moves, train_max_steps=5)
+    slow_messages = dataclasses.replace(TINY, channel=dataclasses.replace(TINY.channel, delay=5))
+    with pytest.raises(ConfigError, match=r"^invalid delay=5: must be < train_max_steps \(5\)$"):
+        make_train_config("reinforced", slow_messages, train_max_steps=5)
+    assert make_train_config("reinforced", slow_moves, train_max_steps=6).training_task.env.act_delay == 5
+
+
 def test_uniform_move_pulls_a_move_the_policy_gave_up_back():
     """The entropy bonus cannot revive a move of probability ~0; KL(uniform || pi) can."""
 

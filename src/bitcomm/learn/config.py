@@ -295,6 +295,8 @@ class TrainConfig:
         self._check_message_divergence()
         if 0 < self.train_max_steps <= self.task.channel.delay:
             raise bad_value("delay", self.task.channel.delay, f"must be < train_max_steps ({self.train_max_steps})")
+        if 0 < self.train_max_steps <= self.task.env.act_delay:  # else training_task's EnvConfig blames max_steps
+            raise bad_value("act-delay", self.task.env.act_delay, f"must be < train_max_steps ({self.train_max_steps})")
         relaxed = self.goal_coef > 0 and not self.model.message_map
         if self.channel_noise != 1.0 and not relaxed:
             raise bad_value(

@@ -42,6 +42,8 @@ class OraclePolicy:
         # the input slot that carries my own goal: a sender that sees it and sends it to me
         self.goal_slot = np.zeros(env.n_agents, dtype=np.int64)
         for x in range(env.n_agents):
+            if x not in env.observed:  # no recipients can fix this: nobody has the goal to send
+                raise bad_value("observes", env.observed, f"the oracle needs some agent to see the goal of agent {x}")
             slots = [k for k, j in enumerate(senders[x]) if j >= 0 and env.observed[j] == x]
             if not slots:
                 raise bad_value(
