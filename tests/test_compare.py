@@ -30,6 +30,7 @@ from bitcomm.studies.compare import (
     first_below,
     machines_sentence,
     plan,
+    read_curve,
     rolling_at_episodes,
 )
 
@@ -297,6 +298,31 @@ def test_time_to_a_level_is_the_first_batch_below_it() -> None:
     curve = Curve(steps, np.array([1.0, 2.5, 4.0]), np.array([20.0, 9.0, 5.0]), steps, -steps)
     assert first_below(curve, 10.0) == {"episodes": 32, "wall_s": 2.5}
     assert first_below(curve, 5.0) is None
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        (None, "No such file"),
+        ("", "no rows"),
+        ("episodes,wall_s\n", "no rows"),
+        ("episodes,wall_s\n16,1.0\n", "no column 'charts/episode_length_rolling'"),
+        ("{header}\n16,1.0,20,20,-5\n32,2.0,1", "line 3 has fewer cells than the header"),
+        ("{header}\n16,1.0,20,20,-5,9\n", "line 2 has more cells than the header"),
+        ("{header}\n16,1.0,twenty,20,-5\n", "could not convert string to float: 'twenty'"),
+    ],
+)
+def test_a_damaged_metrics_csv_is_one_line_naming_the_run(tmp_path: Path, text: str | None, says: str) -> None:
+    """A report reads every run's metrics.csv: one missing, empty, cut mid-line (a copy that stopped short) or
+    holding a word names the run and what is wrong with it, rather than a traceback."""
+    header = "episodes,wall_s,charts/episode_length_rolling,charts/episode_length,charts/team_return"
+    if text is not None:
+        (tmp_path / "metrics.csv").write_text(text.format(header=header))
+    with pytest.raises(ConfigError, match=f"invalid run={str(tmp_path)!r}: metrics.csv") as err:
+        read_curve(tmp_path)
+    assert says in str(err.value) and "\n" not in str(err.value)
+    (tmp_path / "metrics.csv").write_text(f"{header}\n16,1.0,20,20,-5\n32,2.0,9,8,-4\n")
+    assert read_curve(tmp_path).length_rolling.tolist() == [20.0, 9.0]
 
 
 def test_the_tables_read_every_curve_at_fractions_of_the_budget_as_the_plot_draws_it() -> None:

@@ -494,13 +494,22 @@ CURVE_COLUMNS = ("episode_length_rolling", "episode_length", "team_return")
 
 
 def read_columns(folder: Path, charts: tuple[str, ...]) -> list[np.ndarray]:
-    """episodes, wall_s and the given `charts/` columns of a run's metrics.csv, as arrays."""
-    with (folder / "metrics.csv").open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        raise ConfigError(f"invalid run={str(folder)!r}: metrics.csv has no rows")
+    """episodes, wall_s and the given `charts/` columns of a run's metrics.csv, as arrays; one line naming the run
+    when the file is missing, empty, lacks a column, or has a row cut short or a cell that is not a number."""
     keys = ("episodes", "wall_s", *(f"charts/{c}" for c in charts))
-    return [np.array([float(r[k]) for r in rows]) for k in keys]
+    try:
+        with (folder / "metrics.csv").open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        if not rows:
+            raise ValueError("it has no rows")
+        for n, row in enumerate(rows, 2):  # line 1 is the header
+            if None in row.values() or None in row:
+                raise ValueError(f"line {n} has {'fewer' if None in row.values() else 'more'} cells than the header")
+        return [np.array([float(r[k]) for r in rows]) for k in keys]
+    except KeyError as err:
+        raise ConfigError(f"invalid run={str(folder)!r}: metrics.csv has no column {err}") from None
+    except (OSError, ValueError, csv.Error) as err:
+        raise ConfigError(f"invalid run={str(folder)!r}: metrics.csv unreadable ({err})") from None
 
 
 def read_curve(folder: Path) -> Curve:
