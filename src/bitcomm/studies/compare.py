@@ -298,20 +298,25 @@ def write_atomic(path: Path, text: str) -> None:
 def run_status(run: Run) -> str:
     """`new`, `resume` (a checkpoint short of the budget, which may have changed) or `done` (the budget played);
     an error for a folder holding another run, or one that played past this budget under another."""
+    return folder_status(run.folder, run.train)
+
+
+def folder_status(folder: Path, train: TrainConfig | EnvTrainConfig) -> str:
+    """`run_status` of the run `train` in `folder`, for any study that keeps one run per folder."""
     from bitcomm.checkpoint import CHECKPOINTS, LATEST
 
-    latest = run.folder / CHECKPOINTS / LATEST
+    latest = folder / CHECKPOINTS / LATEST
     if not latest.is_file():
         return "new"
-    recorded, wanted = _flat(recorded_config(run.folder, type(run.train)).to_dict()), _flat(run.train.to_dict())
+    recorded, wanted = _flat(recorded_config(folder, type(train)).to_dict()), _flat(train.to_dict())
     differs = [k for k in wanted if k not in RESUMABLE and recorded.get(k) != wanted[k]]
     if differs:
-        raise bad_value("out", str(run.folder), f"it holds a run with other {', '.join(differs)}; use another --out")
-    played, budget = _latest(run.folder)["episodes"], run.train.episodes
+        raise bad_value("out", str(folder), f"it holds a run with other {', '.join(differs)}; use another --out")
+    played, budget = _latest(folder)["episodes"], train.episodes
     if played < budget:
         return "resume"
     if recorded["episodes"] != budget:
-        raise bad_value("episodes", budget, f"{run.folder} has played {played} of a budget of {recorded['episodes']}")
+        raise bad_value("episodes", budget, f"{folder} has played {played} of a budget of {recorded['episodes']}")
     return "done"
 
 
