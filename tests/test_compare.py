@@ -361,27 +361,53 @@ def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.C
 
 
 def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path) -> None:
-    """An alarm or a Ctrl-C that reaches only the parent (as a scheduler sends it) ends the study at once,
-    its running runs stopped rather than waited for; their checkpoints let the next call resume them."""
+    """An alarm or a Ctrl-C that reaches only the parent (as a scheduler sends it) ends the study, its running runs
+    stopped after the batch they are on and saved rather than waited for to their budget, so the next call resumes
+    them. (Ended at once, as they were, runs a minute long lost all they had played before their first checkpoint.)"""
     import multiprocessing
     import signal
     import time
 
-    def interrupt(*_: object) -> None:
-        raise KeyboardInterrupt
+    folders = [tmp_path / "runs" / "improved-bitwise" / f"seed{seed}" for seed in (0, 1)]
+    start = time.monotonic()
+
+    def logged(folder: Path) -> bool:
+        return (folder / "metrics.csv").is_file() and len((folder / "metrics.csv").read_text().splitlines()) > 1
+
+    def interrupt(*_: object) -> None:  # once both runs train (starting them takes seconds on a busy machine)
+        if time.monotonic() - start > 60 or all(logged(f) for f in folders):
+            signal.setitimer(signal.ITIMER_REAL, 0)  # once: a second interrupt ends the runs at once
+            raise KeyboardInterrupt
 
     runs = ["--episodes", "40000", "--seeds", "2", "--techniques", "improved-bitwise"]  # a minute or more each
     argv = ["compare", "--size", "4", "--bits", "4", *runs, "--jobs", "2", "--out", str(tmp_path)]
     previous = signal.signal(signal.SIGALRM, interrupt)
-    signal.alarm(10)
-    start = time.monotonic()
+    signal.setitimer(signal.ITIMER_REAL, 1.0, 0.5)
     try:
         code = main(argv)
     finally:
-        signal.alarm(0)
+        signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
-    assert code != 0 and time.monotonic() - start < 40
+    assert code != 0 and time.monotonic() - start < 90
     deadline = time.monotonic() + 20  # and no run trains on behind it (it would hold the parent at its exit)
     while multiprocessing.active_children() and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not multiprocessing.active_children()
+    for folder in folders:  # each saved the batch it was on, long before its first timed checkpoint
+        assert 0 < json.loads((folder / "checkpoints" / "latest.json").read_text())["episodes"] < 40000
+
+
+def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
+    """`kill PID` of a study, or a scheduler's time limit, used to end it (and, with it, its runs) at once; while the
+    study waits on its runs SIGTERM is an interrupt, so the runs save their batch first (`stop_runs`), exit 143."""
+    import signal
+
+    from bitcomm.learn.run_folder import Stopped
+    from bitcomm.studies.compare import sigterm_interrupts
+
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    with pytest.raises(Stopped) as stopped, sigterm_interrupts():
+        os.kill(os.getpid(), signal.SIGTERM)
+        raise AssertionError("not reached: the handler raises as the signal arrives")
+    assert stopped.value.exit_code == 143
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL

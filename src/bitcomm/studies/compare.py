@@ -31,15 +31,20 @@ configurations have finished different numbers of seeds, can be reported at any 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import itertools
 import json
 import math
+import multiprocessing
 import os
+import signal
+import threading
+import time
 import typing
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -395,13 +400,23 @@ def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
     return record
 
 
+STOP_GRACE_S = 60.0
+"""How long an interrupted study waits for its running runs to save the batch they are on (a batch of a large grid
+takes seconds) before it ends them at once; a second Ctrl-C ends them at once."""
+
+
 def _init_worker(parent: int) -> None:
+    import signal
+
     import torch
 
     from bitcomm.worker_exit import end_with_parent
 
     end_with_parent(parent)  # a study killed alone must not leave its runs training
     torch.set_num_threads(1)  # parallel runs must not share (or fight over) thread pools
+    # an idle worker ignores Ctrl-C: one dying of it between runs would break the pool, which then ends the others
+    # at once, saving or not (`execute` takes Ctrl-C while it works on a run)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
@@ -416,15 +431,24 @@ def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
         run.folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise bad_value("out", str(run.folder), f"cannot create the run folder ({err.strerror or err})") from None
-    with run_lock(run.folder):
-        status = run_status(run)
-        if status != "done":
-            if isinstance(run.train, EnvTrainConfig):
-                train_env(run.train, run.folder, resume=status == "resume", progress=False)
-            else:
-                train(run.train, run.folder, resume=status == "resume", progress=False)
-        if missing_plays(run, eval_episodes, eval_seed):
-            evaluate_run(run, eval_episodes, eval_seed)
+    # a study's worker, which ignores Ctrl-C while idle (`_init_worker`), takes it (or the parent's SIGINT, `stop_runs`)
+    # while it works on a run: training stops after the batch it is on, saved, as `bitcomm train` does
+    worker = multiprocessing.parent_process() is not None and signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    if worker:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with run_lock(run.folder):
+            status = run_status(run)
+            if status != "done":
+                if isinstance(run.train, EnvTrainConfig):
+                    train_env(run.train, run.folder, resume=status == "resume", progress=False)
+                else:
+                    train(run.train, run.folder, resume=status == "resume", progress=False)
+            if missing_plays(run, eval_episodes, eval_seed):
+                evaluate_run(run, eval_episodes, eval_seed)
+    finally:
+        if worker:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
     return status
 
 
@@ -438,7 +462,6 @@ def execute_all(
 ) -> None:
     """Every run that is not finished and evaluated, on up to `cfg.jobs` processes; `describe` gives the line
     logged for each."""
-    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     todo = [r for r in runs if run_status(r) != "done" or missing_plays(r, cfg.eval_episodes, cfg.eval_seed)]
@@ -451,19 +474,58 @@ def execute_all(
     done = len(runs) - len(todo)
     log(f"{plural(len(runs), 'run', 'runs')}, {done} finished and evaluated; {len(todo)} to go on {workers}")
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(),)) as pool:
+    pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(),))
+    with pool, sigterm_interrupts():
         futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
         try:
             for k, future in enumerate(as_completed(futures), 1):
                 run, status = futures[future], future.result()
                 log(f"[{k}/{len(todo)}] {describe(run, status, cfg)}")
-        except BaseException:  # Ctrl-C or an alarm in this process only: stop the running runs, not wait for them
+        except BaseException:  # Ctrl-C, SIGTERM or an alarm in this process only: stop the running runs
             # no public way before 3.14; taken before shutdown, which drops the pool's reference to its processes
             running = list((getattr(pool, "_processes", None) or {}).values())
             pool.shutdown(wait=False, cancel_futures=True)
-            for process in running:
-                process.terminate()  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
+            stop_runs(running)  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
             raise
+
+
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM (`kill PID`, a scheduler's time limit) interrupts the study as Ctrl-C does, so that its running runs
+    save the batch they are on (`stop_runs`) rather than die with it; the study then exits 143, as killed by it.
+    Where SIGTERM is not the default's (a caller took it) or off the main thread, nothing changes."""
+    from bitcomm.learn.run_folder import Stopped
+
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+
+    def stop(signum: int, frame: object) -> None:
+        raise Stopped(signum)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def stop_runs(processes: list[Any], grace_s: float = STOP_GRACE_S) -> None:
+    """Ask each worker to stop its run after the batch it is on and save it (SIGINT: what Ctrl-C sends the whole
+    process group, where this second one counts once, `bitcomm.learn.run_folder.REPEAT_S`), and wait up to
+    `grace_s` for them to end; then, or on a second interrupt, end them at once. Ended at once, a run stopped
+    before its first checkpoint (every `checkpoint_seconds`) would start again from nothing."""
+    for process in processes:
+        if process.is_alive():
+            os.kill(process.pid, signal.SIGINT)
+    deadline = time.monotonic() + grace_s
+    try:
+        for process in processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+    finally:
+        for process in processes:
+            if process.is_alive():
+                process.terminate()
 
 
 VERBS = {"new": "trained", "resume": "resumed", "done": "evaluated"}
