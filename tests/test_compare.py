@@ -31,7 +31,9 @@ from bitcomm.studies.compare import (
     machines_sentence,
     plan,
     read_curve,
+    recorded_config,
     rolling_at_episodes,
+    run_status,
 )
 
 TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
@@ -280,6 +282,28 @@ def test_partial_run_is_resumed_and_another_run_is_refused(tmp_path: Path) -> No
     other, = plan(CompareConfig(**common, episodes=48, learning={"num_envs": 16, "lr": 0.01}))  # fmt: skip
     with pytest.raises(ConfigError, match="lr"):
         execute(other, 20, 1000)
+
+
+def test_a_folder_holding_a_run_of_the_other_kind_or_no_run_s_config_is_one_line(tmp_path: Path) -> None:
+    """A grid study and a study on a wrapped env share the layout runs/<technique>/seed<k>: either one pointed at the
+    other's --out ended in a KeyError traceback ('task', 'channel') reading the other's config.json."""
+    from bitcomm.learn.config import TrainConfig
+    from bitcomm.learn.env_config import EnvTrainConfig
+
+    run, = plan(CompareConfig(out=tmp_path, techniques=("improved-bitwise",), seeds=1))  # fmt: skip
+    (run.folder / "checkpoints").mkdir(parents=True)
+    (run.folder / "checkpoints" / "latest.json").write_text('{"checkpoint": "ckpt_000000064.safetensors"}')
+    config = run.folder / "config.json"
+    config.write_text(json.dumps({"env": "pkg.mod:make", "channel": {"bits": 2}, "seed": 0}))
+    with pytest.raises(ConfigError, match=r"holds a run on a wrapped env \(pkg.mod:make\), not one of this study"):
+        run_status(run)
+    config.write_text(json.dumps(run.train.to_dict()))
+    assert isinstance(recorded_config(run.folder, TrainConfig), TrainConfig)
+    with pytest.raises(ConfigError, match="holds a run of the grid task, not one of this study"):
+        recorded_config(run.folder, EnvTrainConfig)
+    config.write_text('{"seed": 0, "task": 3}')
+    with pytest.raises(ConfigError, match=r"invalid config=.*: not a run's config \(KeyError"):
+        run_status(run)
 
 
 def test_the_table_names_the_machines_whose_seconds_it_mixes() -> None:

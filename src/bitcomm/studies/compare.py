@@ -327,11 +327,22 @@ def folder_status(folder: Path, train: TrainConfig | EnvTrainConfig) -> str:
 
 def recorded_config(folder: Path, kind: type[Any]) -> Any:
     """The config (a `kind`: TrainConfig or EnvTrainConfig) in a run's config.json; fields added since it was
-    written take their defaults."""
+    written take their defaults; one line for a run of the other kind (a study of the grid and one on a wrapped env
+    in the same --out) or a config.json that is no run's."""
+    from bitcomm.checkpoint import is_env_config
+    from bitcomm.learn.env_config import EnvTrainConfig
     from bitcomm.learn.run_folder import read_json_object
 
+    record = read_json_object(folder / "config.json", "config")
+    if is_env_config(record) != (kind is EnvTrainConfig):
+        held = f"a run on a wrapped env ({record['env']})" if is_env_config(record) else "a run of the grid task"
+        raise bad_value("out", str(folder), f"it holds {held}, not one of this study; use another --out")
     names = {f.name for f in dataclasses.fields(kind)}
-    return kind.from_dict({k: v for k, v in read_json_object(folder / "config.json").items() if k in names})
+    try:
+        return kind.from_dict({k: v for k, v in record.items() if k in names})
+    except (KeyError, TypeError, AttributeError) as err:
+        why = f"not a run's config ({type(err).__name__}: {err})"
+        raise bad_value("config", str(folder / "config.json"), why) from None
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
