@@ -33,12 +33,16 @@ def bitcomm(*args: str, threads: int) -> str:
     env = dict(os.environ, OMP_NUM_THREADS=str(threads))
     cmd = [sys.executable, "-c", "import sys; from bitcomm.cli import main; sys.exit(main())", *args]
     print("$ bitcomm " + " ".join(args), flush=True)
-    return subprocess.run(cmd, env=env, check=True, stdout=subprocess.PIPE, text=True).stdout
+    out = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, text=True)
+    if out.returncode != 0:  # its one line (a bad --seeds, --flips ...) is on stderr already: no traceback here
+        raise SystemExit(out.returncode)
+    return out.stdout
 
 
-def _interval(values: list[float]) -> tuple[float, float, float]:
-    """Mean and 95% interval over seeds (Student's t)."""
-    return tuple(float(x) for x in mean_interval(values))  # type: ignore[return-value]
+def _interval(values: list[float]) -> str:
+    """Mean and 95% interval over seeds (Student's t): '44.27 (42.20-46.34)'; one seed has no interval."""
+    mean, lo, hi = (float(x) for x in mean_interval(values))
+    return f"{mean:.2f} ({lo:.2f}-{hi:.2f})" if len(values) > 1 else f"{mean:.2f} (one seed)"
 
 
 def task_flags(a: argparse.Namespace) -> list[str]:
@@ -88,14 +92,12 @@ def flips_part(a: argparse.Namespace) -> str:
         "| flip p | capacity K(1-H(p)) | I(goal; received), bits | episode length (sampled) | oracle |",
         "| ---: | ---: | ---: | ---: | ---: |",
     ]
-    for p, cap, (im, ilo, ihi), (lm, llo, lhi), oracle in sorted(rows):
-        lines.append(
-            f"| {p:g} | {cap:.2f} | {im:.2f} ({ilo:.2f}-{ihi:.2f}) | {lm:.2f} ({llo:.2f}-{lhi:.2f}) | {oracle:.2f} |"
-        )
+    for p, cap, info_text, length_text, oracle in sorted(rows):
+        lines.append(f"| {p:g} | {cap:.2f} | {info_text} | {length_text} | {oracle:.2f} |")
     for c in json.loads((cut / "summary.json").read_text())["configurations"]:
-        m, lo, hi = _interval([r["sampled"]["mean_episode_length"] for r in c["runs"]])
+        length_text = _interval([r["sampled"]["mean_episode_length"] for r in c["runs"]])
         command = "bitcomm " + " ".join(cut_args)
-        lines.append(f"\nNo communication (`{command}`): episode length {m:.2f} ({lo:.2f}-{hi:.2f}).")
+        lines.append(f"\nNo communication (`{command}`): episode length {length_text}.")
     return "### Learning under bit flips (improved + bitwise)\n\n" + "\n".join(lines) + "\n"
 
 

@@ -126,12 +126,14 @@ def summarize(rows: list[dict[str, Any]], marks: tuple[int, ...]) -> dict[str, A
 
 
 def _interval_cell(value: dict[str, Any] | None, runs: int, fmt: str = ".2f") -> str:
-    """'41.47 ± 5.37', with how many runs it is over where that is fewer than the group's."""
+    """'41.47 ± 5.37', with how many runs it is over where that is fewer than the group's ('41.47 (1 run)': one
+    run has no interval)."""
+    from bitcomm.studies.compare import cell, plural
+
     if value is None:
         return "-"
-    lo, hi = value["ci95"]
-    over = f" ({value['n']} runs)" if value["n"] < runs else ""
-    return f"{value['mean']:{fmt}} ± {(hi - lo) / 2:{fmt}}{over}"
+    over = f" ({plural(value['n'], 'run', 'runs')})" if value["n"] < runs else ""
+    return f"{cell(value, fmt)}{over}"
 
 
 def reached_cell(reached: dict[str, Any] | None) -> str:

@@ -192,7 +192,8 @@ def main() -> None:
         "--max-episodes",
         type=int,
         default=MAX_EPISODES,
-        help="episode budget per seed (and, where the recipe anneals, the horizon of the learning-rate schedule)",
+        help="episode budget per seed, played in whole --chunk's: training stops at the first chunk that reaches it, "
+        "which may pass it (and, where the recipe anneals, the horizon of the learning-rate schedule)",
     )
     ap.add_argument("--chunk", type=int, default=1024, help="episodes between checks")
     ap.add_argument("--eval-episodes", type=int, default=2000)

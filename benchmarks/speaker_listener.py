@@ -168,13 +168,12 @@ def table(results: dict[str, list[dict[str, float]]], args: argparse.Namespace) 
         if not rows:
             continue
         mean, lo, hi = mean_interval([r["return"] for r in rows])
+        spread = f"{lo:.2f} to {hi:.2f}" if len(rows) > 1 else "— (one seed)"
         cuts = [r["cut"] for r in rows if "cut" in r]
         cut = f"{np.mean(cuts):.2f}" if cuts else ""
         seeds = ",".join(str(int(r["seed"])) for r in rows)
         info, wall = np.mean([r["information"] for r in rows]), np.mean([r["wall_s"] for r in rows])
-        lines.append(
-            f"| {LABELS[name]} | {seeds} | {mean:.2f} | {lo:.2f} to {hi:.2f} | {cut} | {info:.2f} | {wall:.0f} |"
-        )
+        lines.append(f"| {LABELS[name]} | {seeds} | {mean:.2f} | {spread} | {cut} | {info:.2f} | {wall:.0f} |")
     return "\n".join(lines)
 
 
@@ -186,6 +185,24 @@ def write_docs(text: str, command: str) -> None:
     head, rest = body.split(BEGIN, 1)
     _, tail = rest.split(END, 1)
     doc.write_text(f"{head}{BEGIN}\n{text}\n\nProduced by `{command}`.\n{END}{tail}")
+
+
+def check_args(p: argparse.ArgumentParser, args: argparse.Namespace, names: list[str]) -> None:
+    """Bad input is one line (exit 2) before anything trains, and before the docs' table is rewritten."""
+    from bitcomm.errors import ConfigError, bad_value, check_int
+
+    try:
+        for name in ("episodes", "num_envs", "seeds", "bits", "jobs", "threads", "eval_episodes"):
+            check_int(name, getattr(args, name), 1)
+        check_int("eval_seed", args.eval_seed, 0)
+        if args.seeds > MAX_SEEDS:
+            raise bad_value("seeds", args.seeds, f"must be at most {MAX_SEEDS}")
+        unknown = [n for n in args.only.split(",") if n and n not in names]
+        if unknown:
+            with_techniques = "" if args.techniques else " (with --techniques also " + ", ".join(TECHNIQUES) + ")"
+            raise bad_value("only", args.only, f"a comma-separated subset of {', '.join(names)}{with_techniques}")
+    except ConfigError as err:
+        p.error(str(err))
 
 
 def main() -> None:
@@ -204,6 +221,7 @@ def main() -> None:
     p.add_argument("--no-docs", action="store_true", help="print the table only")
     args = p.parse_args()
     names = list(CONFIGS) + (list(TECHNIQUES) if args.techniques else [])
+    check_args(p, args, names)
     if args.only:
         names = [n for n in args.only.split(",") if n in names]
     jobs = [(name, seed) for seed in range(args.seeds) for name in names]
@@ -223,6 +241,9 @@ def main() -> None:
             results[name].append(row)
     text = table(results, args)
     print(text)
+    if not any(results.values()) and not args.no_docs:  # an empty table must not replace the measured one
+        p.error(f"invalid out={str(args.out)!r}: holds no finished run of {args.episodes} episodes; the docs are "
+                "left as they are")  # fmt: skip
     if not args.no_docs:
         write_docs(text, "python " + " ".join(["benchmarks/speaker_listener.py", *sys.argv[1:]]))
 

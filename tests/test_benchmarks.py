@@ -435,3 +435,47 @@ def test_run_marks_reads_loose_runs_as_the_study_tables_do(tmp_path: Path) -> No
                                  text=True, timeout=60)  # fmt: skip
         assert refused.returncode == 2 and "Traceback" not in refused.stderr
         assert named in refused.stderr.strip().splitlines()[-1]
+
+
+def test_speaker_listener_refuses_bad_input_and_never_writes_an_empty_table_into_the_docs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--seeds 0` or a misspelled `--only` trained nothing and then replaced docs/env_learning.md's measured table
+    with an empty one, exit 0; a table of one seed gave it a 95% interval of zero width."""
+    for bad, named in ((["--seeds", "0"], "seeds=0"), (["--only", "bitcom"], "only='bitcom'")):
+        refused = subprocess.run([sys.executable, "benchmarks/speaker_listener.py", *bad, "--out", str(tmp_path)],
+                                 cwd=ROOT, capture_output=True, text=True, timeout=60)  # fmt: skip
+        assert refused.returncode == 2 and "Traceback" not in refused.stderr
+        assert named in refused.stderr.strip().splitlines()[-1]
+    module = _benchmark("speaker_listener")
+    docs = tmp_path / "docs" / "env_learning.md"
+    docs.parent.mkdir()
+    docs.write_text(f"{module.BEGIN}\nmeasured\n{module.END}\n")
+    monkeypatch.setattr(module, "ROOT", tmp_path)
+    monkeypatch.setattr(module, "train_one", lambda *args: None)  # a run another call is training: skipped
+    monkeypatch.setattr(sys, "argv", ["speaker_listener.py", "--seeds", "1", "--out", str(tmp_path / "runs")])
+    with pytest.raises(SystemExit) as stop:
+        module.main()
+    assert stop.value.code == 2 and "holds no finished run" in capsys.readouterr().err
+    assert "measured" in docs.read_text()
+    args = module.argparse.Namespace(bits=3, episodes=64, num_envs=8, eval_episodes=10, eval_seed=1000)
+    one = {"seed": 0.0, "return": -20.0, "cut": -30.0, "information": 0.5, "wall_s": 3.0}
+    line = module.table({"bitcomm": [one]}, args).splitlines()[-1]
+    assert "| -20.00 | — (one seed) |" in line and " to " not in line
+
+
+def test_one_seed_is_no_interval_in_the_demo_tables_and_a_refused_study_is_its_line_alone(tmp_path: Path) -> None:
+    """`run_marks.py` printed one run as '41.47 ± 0.00' and `channel_demos.py` as '41.47 (41.47-41.47)', intervals
+    of zero width; a study refused by `bitcomm compare` (`--seeds 0`) ended channel_demos in a CalledProcessError
+    traceback under the refusal's own line."""
+    marks, demos = _benchmark("run_marks"), _benchmark("channel_demos")
+    one = {"mean": 41.47, "ci95": [41.47, 41.47], "n": 1}
+    assert marks._interval_cell(one, 1) == "41.47" and marks._interval_cell(one, 3) == "41.47 (1 run)"
+    two = {"mean": 2.0, "ci95": [1.0, 3.0], "n": 2}
+    assert marks._interval_cell(two, 2) == "2.00 ± 1.00" and marks._interval_cell(two, 3) == "2.00 ± 1.00 (2 runs)"
+    assert demos._interval([41.47]) == "41.47 (one seed)"
+    assert demos._interval([1.0, 3.0]) == "2.00 (-10.71-14.71)"  # t = 12.706 for one degree of freedom
+    argv = [sys.executable, "benchmarks/channel_demos.py", "--seeds", "0", "--out", str(tmp_path)]
+    out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.stderr.strip().splitlines()[-1].endswith("invalid value '0': must be an integer in [1, 1000]")

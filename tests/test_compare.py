@@ -30,7 +30,10 @@ from bitcomm.studies.compare import (
     first_below,
     machines_sentence,
     plan,
+    read_curve,
+    recorded_config,
     rolling_at_episodes,
+    run_status,
 )
 
 TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
@@ -281,6 +284,28 @@ def test_partial_run_is_resumed_and_another_run_is_refused(tmp_path: Path) -> No
         execute(other, 20, 1000)
 
 
+def test_a_folder_holding_a_run_of_the_other_kind_or_no_run_s_config_is_one_line(tmp_path: Path) -> None:
+    """A grid study and a study on a wrapped env share the layout runs/<technique>/seed<k>: either one pointed at the
+    other's --out ended in a KeyError traceback ('task', 'channel') reading the other's config.json."""
+    from bitcomm.learn.config import TrainConfig
+    from bitcomm.learn.env_config import EnvTrainConfig
+
+    run, = plan(CompareConfig(out=tmp_path, techniques=("improved-bitwise",), seeds=1))  # fmt: skip
+    (run.folder / "checkpoints").mkdir(parents=True)
+    (run.folder / "checkpoints" / "latest.json").write_text('{"checkpoint": "ckpt_000000064.safetensors"}')
+    config = run.folder / "config.json"
+    config.write_text(json.dumps({"env": "pkg.mod:make", "channel": {"bits": 2}, "seed": 0}))
+    with pytest.raises(ConfigError, match=r"holds a run on a wrapped env \(pkg.mod:make\), not one of this study"):
+        run_status(run)
+    config.write_text(json.dumps(run.train.to_dict()))
+    assert isinstance(recorded_config(run.folder, TrainConfig), TrainConfig)
+    with pytest.raises(ConfigError, match="holds a run of the grid task, not one of this study"):
+        recorded_config(run.folder, EnvTrainConfig)
+    config.write_text('{"seed": 0, "task": 3}')
+    with pytest.raises(ConfigError, match=r"invalid config=.*: not a run's config \(KeyError"):
+        run_status(run)
+
+
 def test_the_table_names_the_machines_whose_seconds_it_mixes() -> None:
     def summary(*runs: list[str]) -> dict[str, Any]:
         return {"configurations": [{"runs": [{"machines": m} for m in runs]}]}
@@ -297,6 +322,31 @@ def test_time_to_a_level_is_the_first_batch_below_it() -> None:
     curve = Curve(steps, np.array([1.0, 2.5, 4.0]), np.array([20.0, 9.0, 5.0]), steps, -steps)
     assert first_below(curve, 10.0) == {"episodes": 32, "wall_s": 2.5}
     assert first_below(curve, 5.0) is None
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        (None, "No such file"),
+        ("", "no rows"),
+        ("episodes,wall_s\n", "no rows"),
+        ("episodes,wall_s\n16,1.0\n", "no column 'charts/episode_length_rolling'"),
+        ("{header}\n16,1.0,20,20,-5\n32,2.0,1", "line 3 has fewer cells than the header"),
+        ("{header}\n16,1.0,20,20,-5,9\n", "line 2 has more cells than the header"),
+        ("{header}\n16,1.0,twenty,20,-5\n", "could not convert string to float: 'twenty'"),
+    ],
+)
+def test_a_damaged_metrics_csv_is_one_line_naming_the_run(tmp_path: Path, text: str | None, says: str) -> None:
+    """A report reads every run's metrics.csv: one missing, empty, cut mid-line (a copy that stopped short) or
+    holding a word names the run and what is wrong with it, rather than a traceback."""
+    header = "episodes,wall_s,charts/episode_length_rolling,charts/episode_length,charts/team_return"
+    if text is not None:
+        (tmp_path / "metrics.csv").write_text(text.format(header=header))
+    with pytest.raises(ConfigError, match=f"invalid run={str(tmp_path)!r}: metrics.csv") as err:
+        read_curve(tmp_path)
+    assert says in str(err.value) and "\n" not in str(err.value)
+    (tmp_path / "metrics.csv").write_text(f"{header}\n16,1.0,20,20,-5\n32,2.0,9,8,-4\n")
+    assert read_curve(tmp_path).length_rolling.tolist() == [20.0, 9.0]
 
 
 def test_the_tables_read_every_curve_at_fractions_of_the_budget_as_the_plot_draws_it() -> None:
@@ -335,27 +385,53 @@ def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.C
 
 
 def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path) -> None:
-    """An alarm or a Ctrl-C that reaches only the parent (as a scheduler sends it) ends the study at once,
-    its running runs stopped rather than waited for; their checkpoints let the next call resume them."""
+    """An alarm or a Ctrl-C that reaches only the parent (as a scheduler sends it) ends the study, its running runs
+    stopped after the batch they are on and saved rather than waited for to their budget, so the next call resumes
+    them. (Ended at once, as they were, runs a minute long lost all they had played before their first checkpoint.)"""
     import multiprocessing
     import signal
     import time
 
-    def interrupt(*_: object) -> None:
-        raise KeyboardInterrupt
+    folders = [tmp_path / "runs" / "improved-bitwise" / f"seed{seed}" for seed in (0, 1)]
+    start = time.monotonic()
+
+    def logged(folder: Path) -> bool:
+        return (folder / "metrics.csv").is_file() and len((folder / "metrics.csv").read_text().splitlines()) > 1
+
+    def interrupt(*_: object) -> None:  # once both runs train (starting them takes seconds on a busy machine)
+        if time.monotonic() - start > 60 or all(logged(f) for f in folders):
+            signal.setitimer(signal.ITIMER_REAL, 0)  # once: a second interrupt ends the runs at once
+            raise KeyboardInterrupt
 
     runs = ["--episodes", "40000", "--seeds", "2", "--techniques", "improved-bitwise"]  # a minute or more each
     argv = ["compare", "--size", "4", "--bits", "4", *runs, "--jobs", "2", "--out", str(tmp_path)]
     previous = signal.signal(signal.SIGALRM, interrupt)
-    signal.alarm(10)
-    start = time.monotonic()
+    signal.setitimer(signal.ITIMER_REAL, 1.0, 0.5)
     try:
         code = main(argv)
     finally:
-        signal.alarm(0)
+        signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
-    assert code != 0 and time.monotonic() - start < 40
+    assert code != 0 and time.monotonic() - start < 90
     deadline = time.monotonic() + 20  # and no run trains on behind it (it would hold the parent at its exit)
     while multiprocessing.active_children() and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not multiprocessing.active_children()
+    for folder in folders:  # each saved the batch it was on, long before its first timed checkpoint
+        assert 0 < json.loads((folder / "checkpoints" / "latest.json").read_text())["episodes"] < 40000
+
+
+def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
+    """`kill PID` of a study, or a scheduler's time limit, used to end it (and, with it, its runs) at once; while the
+    study waits on its runs SIGTERM is an interrupt, so the runs save their batch first (`stop_runs`), exit 143."""
+    import signal
+
+    from bitcomm.learn.run_folder import Stopped
+    from bitcomm.studies.compare import sigterm_interrupts
+
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    with pytest.raises(Stopped) as stopped, sigterm_interrupts():
+        os.kill(os.getpid(), signal.SIGTERM)
+        raise AssertionError("not reached: the handler raises as the signal arrives")
+    assert stopped.value.exit_code == 143
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL

@@ -89,6 +89,22 @@ def test_learning_curves_at_a_fixed_budget(tmp_path: Path, capsys: pytest.Captur
     assert (out / "scaling_curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "scaling_curves.svg").read_text().startswith("<?xml")
 
+    # called again, the finished runs are kept (it used to stop on "already holds a run (use --resume ...)", a flag
+    # scaling lacks); with a larger budget they are resumed, not started again
+    metrics = out / "runs" / "2_bitwise" / "metrics.csv"
+    before = metrics.read_text()
+    assert main([*argv, "--out", str(out)]) == 0
+    assert metrics.read_text() == before
+    budget = argv.index("--episodes") + 1
+    assert main([*argv[:budget], "12", *argv[budget + 1 :], "--out", str(out)]) == 0
+    assert {r["messages"]: r["episodes"] for r in json.loads(capsys.readouterr().out.splitlines()[-1])} == {
+        "bitwise": 12,
+        "onehot": 12,
+    }
+    with metrics.open() as f:
+        assert [int(r["episodes"]) for r in csv.DictReader(f)] == [4, 8, 12]
+    assert metrics.read_text().startswith(before)
+
 
 def test_no_training_where_one_hot_would_not_fit(tmp_path: Path) -> None:
     row = ScalingRow(64, 12, "onehot", 4096, 4101, 0, 0, 0, 0, 0, 0, 0, 0.0, 1, train_memory_gb=20.0)

@@ -19,7 +19,7 @@ TINY = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
 def test_parse_param() -> None:
     assert parse_param("act-fail-prob=0,0.1") == ("act_fail_prob", (0.0, 0.1))
     assert parse_param("act_delay=0,2") == ("act_delay", (0, 2))
-    for bad in ("act_delay=0.5", "speed=1", "flip_prob", "flip_prob=x", "drop_prob="):
+    for bad in ("act_delay=0.5", "speed=1", "flip_prob", "flip_prob=x", "drop_prob=", "flip_prob=0,0.1,0"):
         with pytest.raises(ConfigError):
             parse_param(bad)
     assert with_param(TINY, "delay", 3).channel.delay == 3
@@ -52,6 +52,16 @@ def test_cli_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert "wrote" in capsys.readouterr().out
     assert main(["sweep", "--param", "speed=1", "--out", str(out)]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_a_parameter_given_twice_is_one_line_not_its_first_values_dropped(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["sweep", "--policy", "oracle", "--size", "4", "--bits", "4", "--episodes", "10", "--out", str(tmp_path)]
+    assert main([*argv, "--param", "flip_prob=0.1", "--param", "flip-prob=0.2"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "invalid param=" in err and "each NAME at most once" in err
+    assert not (tmp_path / "sweep.csv").exists()
 
 
 def test_threads_flag_sets_torchs_threads(tmp_path: Path, threads, capsys: pytest.CaptureFixture[str]) -> None:

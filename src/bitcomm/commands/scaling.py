@@ -88,7 +88,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--episodes",
         type=integer(0, MAX_TRAIN_EPISODES),
         default=0,
-        help="training budget per size and head for learning curves; 0 skips training (default %(default)s)",
+        help="training budget per size and head for learning curves; 0 skips training; a run already in --out is "
+        "kept, or resumed to a larger budget (default %(default)s)",
     )
     p.add_argument(
         "--num-envs",

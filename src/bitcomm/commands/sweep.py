@@ -11,6 +11,7 @@ from pathlib import Path
 from bitcomm.commands.common import add_task_flags
 from bitcomm.commands.flags import EVAL_EPISODES, SEED, add_threads_flag, check_eval, out_dir, use_threads
 from bitcomm.config import TaskConfig
+from bitcomm.errors import bad_value
 from bitcomm.policies.source import add_policy_flags, sources_from_args
 from bitcomm.studies.sweep import DEFAULT_SWEEP, SWEEPABLE, parse_param, plot_sweep, run_sweep, with_param, write_csv
 
@@ -55,6 +56,8 @@ def check_points(task: TaskConfig, params: dict[str, tuple[float, ...]], episode
 def run(args: argparse.Namespace) -> int:
     episodes = args.episodes
     params = dict(parse_param(text) for text in args.param) if args.param else dict(DEFAULT_SWEEP)
+    if args.param and len(params) != len(args.param):  # a second --param NAME=... would replace the first's values
+        raise bad_value("param", args.param, "each NAME at most once (its values in one --param NAME=V1,V2,...)")
     sources = sources_from_args(args)
     task = sources[0].task_from_args(args)  # a learned policy's task when RUN is given; others join it
     check_points(task, params, episodes)

@@ -609,7 +609,8 @@ def _stoppable_signals() -> list[signal.Signals]:
     """The signals a training loop may take over: SIGINT where Python's own handler has it (not where it is
     ignored, as in a background job, or another handler took it), and SIGTERM (what `kill PID` and a cluster
     scheduler's time limit send) where it would kill the process, in a process started as a program (a
-    study's worker is stopped by its parent with SIGTERM, at once, and keeps that)."""
+    study's worker keeps SIGTERM's default: its parent asks it to stop with SIGINT, `studies.compare.stop_runs`,
+    and ends it with SIGTERM, at once, when it does not)."""
     import multiprocessing
 
     if threading.current_thread() is not threading.main_thread():

@@ -31,15 +31,20 @@ configurations have finished different numbers of seeds, can be reported at any 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import itertools
 import json
 import math
+import multiprocessing
 import os
+import signal
+import threading
+import time
 import typing
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -298,30 +303,46 @@ def write_atomic(path: Path, text: str) -> None:
 def run_status(run: Run) -> str:
     """`new`, `resume` (a checkpoint short of the budget, which may have changed) or `done` (the budget played);
     an error for a folder holding another run, or one that played past this budget under another."""
+    return folder_status(run.folder, run.train)
+
+
+def folder_status(folder: Path, train: TrainConfig | EnvTrainConfig) -> str:
+    """`run_status` of the run `train` in `folder`, for any study that keeps one run per folder."""
     from bitcomm.checkpoint import CHECKPOINTS, LATEST
 
-    latest = run.folder / CHECKPOINTS / LATEST
+    latest = folder / CHECKPOINTS / LATEST
     if not latest.is_file():
         return "new"
-    recorded, wanted = _flat(recorded_config(run.folder, type(run.train)).to_dict()), _flat(run.train.to_dict())
+    recorded, wanted = _flat(recorded_config(folder, type(train)).to_dict()), _flat(train.to_dict())
     differs = [k for k in wanted if k not in RESUMABLE and recorded.get(k) != wanted[k]]
     if differs:
-        raise bad_value("out", str(run.folder), f"it holds a run with other {', '.join(differs)}; use another --out")
-    played, budget = _latest(run.folder)["episodes"], run.train.episodes
+        raise bad_value("out", str(folder), f"it holds a run with other {', '.join(differs)}; use another --out")
+    played, budget = _latest(folder)["episodes"], train.episodes
     if played < budget:
         return "resume"
     if recorded["episodes"] != budget:
-        raise bad_value("episodes", budget, f"{run.folder} has played {played} of a budget of {recorded['episodes']}")
+        raise bad_value("episodes", budget, f"{folder} has played {played} of a budget of {recorded['episodes']}")
     return "done"
 
 
 def recorded_config(folder: Path, kind: type[Any]) -> Any:
     """The config (a `kind`: TrainConfig or EnvTrainConfig) in a run's config.json; fields added since it was
-    written take their defaults."""
+    written take their defaults; one line for a run of the other kind (a study of the grid and one on a wrapped env
+    in the same --out) or a config.json that is no run's."""
+    from bitcomm.checkpoint import is_env_config
+    from bitcomm.learn.env_config import EnvTrainConfig
     from bitcomm.learn.run_folder import read_json_object
 
+    record = read_json_object(folder / "config.json", "config")
+    if is_env_config(record) != (kind is EnvTrainConfig):
+        held = f"a run on a wrapped env ({record['env']})" if is_env_config(record) else "a run of the grid task"
+        raise bad_value("out", str(folder), f"it holds {held}, not one of this study; use another --out")
     names = {f.name for f in dataclasses.fields(kind)}
-    return kind.from_dict({k: v for k, v in read_json_object(folder / "config.json").items() if k in names})
+    try:
+        return kind.from_dict({k: v for k, v in record.items() if k in names})
+    except (KeyError, TypeError, AttributeError) as err:
+        why = f"not a run's config ({type(err).__name__}: {err})"
+        raise bad_value("config", str(folder / "config.json"), why) from None
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -391,13 +412,23 @@ def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
     return record
 
 
+STOP_GRACE_S = 60.0
+"""How long an interrupted study waits for its running runs to save the batch they are on (a batch of a large grid
+takes seconds) before it ends them at once; a second Ctrl-C ends them at once."""
+
+
 def _init_worker(parent: int) -> None:
+    import signal
+
     import torch
 
     from bitcomm.worker_exit import end_with_parent
 
     end_with_parent(parent)  # a study killed alone must not leave its runs training
     torch.set_num_threads(1)  # parallel runs must not share (or fight over) thread pools
+    # an idle worker ignores Ctrl-C: one dying of it between runs would break the pool, which then ends the others
+    # at once, saving or not (`execute` takes Ctrl-C while it works on a run)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
@@ -412,15 +443,24 @@ def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
         run.folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise bad_value("out", str(run.folder), f"cannot create the run folder ({err.strerror or err})") from None
-    with run_lock(run.folder):
-        status = run_status(run)
-        if status != "done":
-            if isinstance(run.train, EnvTrainConfig):
-                train_env(run.train, run.folder, resume=status == "resume", progress=False)
-            else:
-                train(run.train, run.folder, resume=status == "resume", progress=False)
-        if missing_plays(run, eval_episodes, eval_seed):
-            evaluate_run(run, eval_episodes, eval_seed)
+    # a study's worker, which ignores Ctrl-C while idle (`_init_worker`), takes it (or the parent's SIGINT, `stop_runs`)
+    # while it works on a run: training stops after the batch it is on, saved, as `bitcomm train` does
+    worker = multiprocessing.parent_process() is not None and signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    if worker:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with run_lock(run.folder):
+            status = run_status(run)
+            if status != "done":
+                if isinstance(run.train, EnvTrainConfig):
+                    train_env(run.train, run.folder, resume=status == "resume", progress=False)
+                else:
+                    train(run.train, run.folder, resume=status == "resume", progress=False)
+            if missing_plays(run, eval_episodes, eval_seed):
+                evaluate_run(run, eval_episodes, eval_seed)
+    finally:
+        if worker:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
     return status
 
 
@@ -434,7 +474,6 @@ def execute_all(
 ) -> None:
     """Every run that is not finished and evaluated, on up to `cfg.jobs` processes; `describe` gives the line
     logged for each."""
-    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     todo = [r for r in runs if run_status(r) != "done" or missing_plays(r, cfg.eval_episodes, cfg.eval_seed)]
@@ -447,19 +486,58 @@ def execute_all(
     done = len(runs) - len(todo)
     log(f"{plural(len(runs), 'run', 'runs')}, {done} finished and evaluated; {len(todo)} to go on {workers}")
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(),)) as pool:
+    pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(),))
+    with pool, sigterm_interrupts():
         futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
         try:
             for k, future in enumerate(as_completed(futures), 1):
                 run, status = futures[future], future.result()
                 log(f"[{k}/{len(todo)}] {describe(run, status, cfg)}")
-        except BaseException:  # Ctrl-C or an alarm in this process only: stop the running runs, not wait for them
+        except BaseException:  # Ctrl-C, SIGTERM or an alarm in this process only: stop the running runs
             # no public way before 3.14; taken before shutdown, which drops the pool's reference to its processes
             running = list((getattr(pool, "_processes", None) or {}).values())
             pool.shutdown(wait=False, cancel_futures=True)
-            for process in running:
-                process.terminate()  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
+            stop_runs(running)  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
             raise
+
+
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM (`kill PID`, a scheduler's time limit) interrupts the study as Ctrl-C does, so that its running runs
+    save the batch they are on (`stop_runs`) rather than die with it; the study then exits 143, as killed by it.
+    Where SIGTERM is not the default's (a caller took it) or off the main thread, nothing changes."""
+    from bitcomm.learn.run_folder import Stopped
+
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+
+    def stop(signum: int, frame: object) -> None:
+        raise Stopped(signum)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def stop_runs(processes: list[Any], grace_s: float = STOP_GRACE_S) -> None:
+    """Ask each worker to stop its run after the batch it is on and save it (SIGINT: what Ctrl-C sends the whole
+    process group, where this second one counts once, `bitcomm.learn.run_folder.REPEAT_S`), and wait up to
+    `grace_s` for them to end; then, or on a second interrupt, end them at once. Ended at once, a run stopped
+    before its first checkpoint (every `checkpoint_seconds`) would start again from nothing."""
+    for process in processes:
+        if process.is_alive():
+            os.kill(process.pid, signal.SIGINT)
+    deadline = time.monotonic() + grace_s
+    try:
+        for process in processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+    finally:
+        for process in processes:
+            if process.is_alive():
+                process.terminate()
 
 
 VERBS = {"new": "trained", "resume": "resumed", "done": "evaluated"}
@@ -495,13 +573,22 @@ CURVE_COLUMNS = ("episode_length_rolling", "episode_length", "team_return")
 
 
 def read_columns(folder: Path, charts: tuple[str, ...]) -> list[np.ndarray]:
-    """episodes, wall_s and the given `charts/` columns of a run's metrics.csv, as arrays."""
-    with (folder / "metrics.csv").open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        raise ConfigError(f"invalid run={str(folder)!r}: metrics.csv has no rows")
+    """episodes, wall_s and the given `charts/` columns of a run's metrics.csv, as arrays; one line naming the run
+    when the file is missing, empty, lacks a column, or has a row cut short or a cell that is not a number."""
     keys = ("episodes", "wall_s", *(f"charts/{c}" for c in charts))
-    return [np.array([float(r[k]) for r in rows]) for k in keys]
+    try:
+        with (folder / "metrics.csv").open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        if not rows:
+            raise ValueError("it has no rows")
+        for n, row in enumerate(rows, 2):  # line 1 is the header
+            if None in row.values() or None in row:
+                raise ValueError(f"line {n} has {'fewer' if None in row.values() else 'more'} cells than the header")
+        return [np.array([float(r[k]) for r in rows]) for k in keys]
+    except KeyError as err:
+        raise ConfigError(f"invalid run={str(folder)!r}: metrics.csv has no column {err}") from None
+    except (OSError, ValueError, csv.Error) as err:
+        raise ConfigError(f"invalid run={str(folder)!r}: metrics.csv unreadable ({err})") from None
 
 
 def read_curve(folder: Path) -> Curve:

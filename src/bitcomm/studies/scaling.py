@@ -231,13 +231,18 @@ def measure(size: int, messages: str, scfg: ScalingConfig) -> ScalingRow:
 
 
 def learning_run(row: ScalingRow, scfg: ScalingConfig, out: Path, progress: bool = False) -> ScalingRow:
-    """Train the pair for `scfg.episodes` episodes into `out` (skipped when over the memory limit)."""
+    """Train the pair for `scfg.episodes` episodes into `out` (skipped when over the memory limit); a run that
+    has played them is kept and one stopped short of them resumed, so the study can be called again."""
     from bitcomm.learn.run import train
+    from bitcomm.studies.compare import folder_status
 
     if row.train_memory_gb > scfg.max_memory_gb:
         return row
     cfg = train_config(row.size, row.messages, scfg, episodes=scfg.episodes)
-    train(dataclasses.replace(cfg, checkpoint_seconds=1e9), out, progress=progress)
+    cfg = dataclasses.replace(cfg, checkpoint_seconds=1e9)
+    status = folder_status(out, cfg)
+    if status != "done":
+        train(cfg, out, resume=status == "resume", progress=progress)
     with (out / "metrics.csv").open(newline="") as f:
         last = list(csv.DictReader(f))[-1]
     return dataclasses.replace(

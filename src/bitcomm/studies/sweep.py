@@ -70,6 +70,8 @@ def parse_param(text: str) -> tuple[str, tuple[float, ...]]:
         raise bad_value("param", text, "values must be numbers") from None
     if not parsed:
         raise bad_value("param", text, "give at least one value")
+    if len(set(parsed)) != len(parsed):
+        raise bad_value("param", text, "values repeat")
     if kind is int:
         if any(v != int(v) for v in parsed):
             raise bad_value(name, values, "must be whole numbers")
