@@ -3,8 +3,8 @@ imports only the layers below it (what its `__init__` docstring says it may impo
 
 Every import counts, at module level or inside a function, except those under `if TYPE_CHECKING:`
 (they never run). `bitcomm` (the root `__init__`, whose public names load lazily) and the modules beside
-it (config, errors, checkpoint, run_lock, plotting) are the base layer; `bitcomm.cli` sits with the
-commands.
+it (config, errors, checkpoint, run_lock, plotting) are the base layer; `bitcomm.cli` and `bitcomm.__main__`
+(`python -m bitcomm`) sit with the commands.
 """
 
 from __future__ import annotations
@@ -34,9 +34,10 @@ def module_name(path: Path) -> str:
 
 
 def package_of(module: str) -> str:
-    """`bitcomm.learn.run` -> `learn`; the root and the modules beside it -> `base`; `bitcomm.cli` -> `commands`."""
+    """`bitcomm.learn.run` -> `learn`; the root and the modules beside it -> `base`; the command line's entry
+    points, `bitcomm.cli` and `bitcomm.__main__`, -> `commands`."""
     parts = module.split(".")
-    if module == "bitcomm.cli":
+    if module in ("bitcomm.cli", "bitcomm.__main__"):
         return "commands"
     if len(parts) == 1 or (SRC / "bitcomm" / f"{parts[1]}.py").is_file():
         return "base"
