@@ -576,6 +576,15 @@ def test_an_a3c_worker_killed_outright_stops_the_run_saved_in_one_line(tmp_path:
     assert played == (len((out / "metrics.csv").read_text().splitlines()) - 1) * 16 and str(played) in lines[-1]
 
 
+def test_an_a3c_run_resumed_on_ray_is_one_line_that_can_be_followed(tmp_path: Path, capsys) -> None:
+    """Ray trains in sync mode and a resume keeps the mode: the line was the config's own, which asked to change
+    --mode (refused on a resume)."""
+    args = ["train", *QUICK, "--mode", "a3c", "--workers", "1", "--episodes", "16", "--out", str(tmp_path / "a3c")]
+    assert cli(capsys, *args)[0] == 0
+    line = refused(capsys, *args, "--resume", "--backend", "ray", "--episodes", "32", naming="invalid backend='ray'")
+    assert "mode=a3c" in line and "without --backend ray" in line
+
+
 def test_a_stop_signal_repeated_at_once_is_one_request(monkeypatch: pytest.MonkeyPatch) -> None:
     """`timeout`'s second copy of its signal (`REPEAT_S`) must not stop the run unsaved; a later one does."""
     from bitcomm.learn import run_folder
