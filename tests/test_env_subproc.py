@@ -1,6 +1,6 @@
 """Slow envs stepped in worker processes (`SubprocVecEnv`, `--env-workers`; issue 18): the same episodes as in
 the learner's process, bit for bit, so the same run; bad worker counts are one line; a worker that dies is one
-`ConfigError`, never a hang.
+`ConfigError`, never a hang, and a run it stops saves what it had.
 
 `RelayEnv` is test-local: the workers import it by its spec (`test_env_subproc:RelayEnv`), since a spawned
 process starts with this process's `sys.path`.
@@ -171,6 +171,35 @@ def test_a_killed_worker_is_one_config_error_not_a_hang() -> None:
     finally:
         within_timeout(vec.close)
     assert not any(p.is_alive() for p in procs)
+
+
+def test_a_run_whose_worker_dies_saves_what_it_learned_and_resumes_as_if_never_stopped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A worker killed mid-batch loses that batch, not every batch since the last checkpoint (`--checkpoint-seconds`,
+    here never): the run saves its learner and generators as they were before the batch, so that a resume plays
+    it as the run would have, and ends in one line."""
+    from bitcomm.envs.subproc_vector import WorkerDied
+    from bitcomm.learn import env_run
+
+    cfg = config(episodes=20)  # 4 batches of 5
+    whole = train_env(cfg, tmp_path / "whole", progress=False)
+    calls = []
+
+    def dies_in_batch_3(vec: VecEnv, policy: Any, seed: Any, generator: torch.Generator) -> EnvRollout:
+        calls.append(1)
+        if len(calls) == 3:
+            torch.rand(3, generator=generator), torch.rand(3)  # part of the batch was sampled
+            raise WorkerDied("env worker 1 of 2 (pid 1) running relay died (exit code -9)")
+        return play(vec, policy, seed, generator)
+
+    monkeypatch.setattr(env_run, "play", dies_in_batch_3)
+    with pytest.raises(ConfigError, match=r"died \(exit code -9\); saved after 10 episodes as .*--resume goes on"):
+        train_env(cfg, tmp_path / "died", progress=False)
+    monkeypatch.setattr(env_run, "play", play)
+    resumed = train_env(cfg, tmp_path / "died", resume=True, progress=False)
+    (a, _), (b, _) = load_weights(whole), load_weights(resumed)
+    assert all(torch.equal(a[net][k], b[net][k]) for net in a for k in a[net])
 
 
 def test_an_env_error_in_a_worker_is_raised_with_its_traceback(relay: tuple[EnvTrainConfig, VecEnv, VecEnv]) -> None:

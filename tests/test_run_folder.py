@@ -541,6 +541,50 @@ def test_a3c_stopped_as_timeout_does_saves_every_batch_leaks_nothing_and_resumes
     assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] >= played + 32
 
 
+def _spawned_children(pid: int) -> list[int]:
+    """The pids of the `multiprocessing` spawned children of `pid` (its a3c workers; not the resource tracker)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            if ppid == pid and b"spawn_main" in (entry / "cmdline").read_bytes():
+                found.append(int(entry.name))
+        except (ValueError, OSError, IndexError):
+            continue
+    return sorted(found)
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the workers in /proc")
+def test_an_a3c_worker_killed_outright_stops_the_run_saved_in_one_line(tmp_path: Path) -> None:
+    """`kill -9` of one worker (or the OOM killer): the others stop after their batch and the run saves and ends
+    in one line; before, they trained on to the budget unseen and the run ended in a traceback, nothing saved."""
+    out = tmp_path / "a3c"
+    args = ["train", *QUICK[:-1], "3600", "--mode", "a3c", "--workers", "2", "--episodes", "96000"]
+    proc = run_until_logged(args, out, 2, start_new_session=True)
+    try:
+        workers = _spawned_children(proc.pid)
+        assert len(workers) == 2, workers
+        os.kill(workers[1], signal.SIGKILL)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    lines = err.strip().splitlines()
+    assert proc.returncode == 2 and "Traceback" not in err and "exit code -9" in lines[-1], err
+    assert _spawned_children(proc.pid) == []
+    played = json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"]
+    assert played == (len((out / "metrics.csv").read_text().splitlines()) - 1) * 16 and str(played) in lines[-1]
+
+
+def test_an_a3c_run_resumed_on_ray_is_one_line_that_can_be_followed(tmp_path: Path, capsys) -> None:
+    """Ray trains in sync mode and a resume keeps the mode: the line was the config's own, which asked to change
+    --mode (refused on a resume)."""
+    args = ["train", *QUICK, "--mode", "a3c", "--workers", "1", "--episodes", "16", "--out", str(tmp_path / "a3c")]
+    assert cli(capsys, *args)[0] == 0
+    line = refused(capsys, *args, "--resume", "--backend", "ray", "--episodes", "32", naming="invalid backend='ray'")
+    assert "mode=a3c" in line and "without --backend ray" in line
+
+
 def test_a_stop_signal_repeated_at_once_is_one_request(monkeypatch: pytest.MonkeyPatch) -> None:
     """`timeout`'s second copy of its signal (`REPEAT_S`) must not stop the run unsaved; a later one does."""
     from bitcomm.learn import run_folder

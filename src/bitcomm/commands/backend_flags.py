@@ -68,9 +68,16 @@ def add_backend_flags(parser: argparse.ArgumentParser) -> None:
 
 def execution(args: argparse.Namespace, cfg: TrainConfig) -> TrainConfig:
     """`cfg` as this command line runs it: on `--resume`, the backend (default local), workers and staleness
-    given now; one line for `--address` without `--backend ray`."""
+    given now; one line for `--address` without `--backend ray`, and for an a3c run resumed on Ray."""
     if args.resume:
         backend = args.backend or "local"
+        if backend == "ray" and cfg.mode != "sync":  # not the config's own line, which says to change the mode
+            raise bad_value(
+                "backend",
+                backend,
+                f"the run was trained with mode={cfg.mode}, which trains on the local backend only (Ray's actors play "
+                "sync batches), and --resume keeps its mode: resume it without --backend ray",
+            )
         staleness = args.staleness if args.staleness is not None else cfg.staleness if backend == "ray" else 0
         cfg = dataclasses.replace(cfg, backend=backend, workers=args.workers or cfg.workers, staleness=staleness)
     if args.address is not None and cfg.backend != "ray":

@@ -7,8 +7,8 @@ reset with seed b and stepped with row b of the actions wherever it lives. The p
 the seeds, actions and messages of a worker's rows out, the rows of `VecObservation` and `VecStep` back; the
 workers step their shares at the same time. Workers start with `spawn` (no fork of a process holding torch
 threads), ignore Ctrl-C (the learner's `close()` stops them), and exit when their pipe closes. A worker that
-dies is one `ConfigError` naming it and the env, never a hang; an exception raised in a worker is raised
-here with the worker's traceback.
+dies is one `WorkerDied` (a `ConfigError`) naming it and the env, never a hang; an exception raised in a worker
+is raised here with the worker's traceback.
 """
 
 from __future__ import annotations
@@ -29,6 +29,11 @@ from bitcomm.errors import ConfigError, bad_value, check_int
 
 CLOSE_SECONDS = 5.0
 """How long `close()` waits for a worker to close its copies before it terminates it."""
+
+
+class WorkerDied(ConfigError):
+    """An env worker process ended (killed, or crashed inside the env's own code) while it had copies to step:
+    the batch it was playing is lost, nothing else (a trainer saves what it had and says so)."""
 
 
 class WorkerError(NamedTuple):
@@ -179,10 +184,10 @@ class SubprocVecEnv(VecEnv):
             raise RuntimeError(f"{where} raised:\n{reply.text}")
         return reply
 
-    def _died(self, w: int) -> ConfigError:
+    def _died(self, w: int) -> WorkerDied:
         proc = self.procs[w]
         proc.join(timeout=5)
-        return ConfigError(
+        return WorkerDied(
             f"env worker {w} of {len(self.slices)} (pid {proc.pid}) running {self.name} died "
             f"(exit code {proc.exitcode}); --env-workers 0 steps the env in this process, where its own error shows"
         )

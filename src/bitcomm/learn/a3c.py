@@ -17,6 +17,11 @@ Ctrl-C or SIGTERM stops the run as sync mode's (`stop_after_batch`): the main pr
 stop after the batch they are on, logs those batches, saves them and exits through its own cleanup, which
 unlinks the lock's and queue's semaphores (killed outright, it left them to the resource tracker's "leaked
 semaphore" warning). The workers leave both signals to the main process, as the resource tracker does.
+
+A worker killed outright (`kill -9`, the OOM killer) stops the run the same way: the others end after their
+batch, the run saves and ends with one line naming the worker, and `--resume` goes on (before, the others
+trained on to the budget unseen and the run then ended in a traceback with nothing saved). A worker killed
+holding the shared lock leaves it held: the main process waits `LOCK_WAIT_S` for it, then says so in one line.
 """
 
 from __future__ import annotations
@@ -35,7 +40,8 @@ import torch
 import torch.multiprocessing as mp
 from torch import nn
 
-from bitcomm.checkpoint import first_nonfinite
+from bitcomm.checkpoint import first_nonfinite, resolve
+from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
@@ -58,6 +64,26 @@ from bitcomm.policies.denormals import flush_denormals
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 """What `stop_after_batch` takes in the main process: Ctrl-C reaches the whole process group, and so does
 `timeout`'s SIGTERM; a worker they killed mid-batch could die holding the lock that the final save takes."""
+
+
+LOCK_WAIT_S = 30.0
+"""How long the main process waits for the shared lock (held for one claim or one optimizer step) before it
+takes it for held by a worker that died."""
+
+
+@contextlib.contextmanager
+def _locked(lock: Any, last: str) -> Iterator[None]:
+    """`with lock`, but one line rather than a hang when a killed worker left it held (`last`: where the run
+    was last saved)."""
+    if not lock.acquire(timeout=LOCK_WAIT_S):
+        raise ConfigError(
+            f"the a3c workers' shared lock was not released in {LOCK_WAIT_S:g} s: a worker killed while it held "
+            f"it; the run was last saved as {last}, where --resume goes on"
+        )
+    try:
+        yield
+    finally:
+        lock.release()
 
 
 def _grouped_params(groups: list[dict[str, Any]]) -> list[torch.Tensor]:
@@ -244,8 +270,10 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
         for w in range(cfg.workers)
     ]
 
+    saved_as = [str(resolve(out)) if saved is not None else "nowhere (no checkpoint yet)"]
+
     def save() -> Path:
-        with lock:  # weights and Adam moments from between two steps
+        with _locked(lock, saved_as[0]):  # weights and Adam moments from between two steps
             weights = {k: {n_: t.clone() for n_, t in sd.items()} for k, sd in checkpoint_weights(learner).items()}
             state = {
                 **prog.state(),
@@ -253,29 +281,36 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 "next_batch": next_batch.value,
             }
             state = {k: _clone(v) for k, v in state.items()}
-        return save_run_checkpoint(out, cfg, weights, prog, state)
+        path = save_run_checkpoint(out, cfg, weights, prog, state)
+        saved_as[0] = str(path)
+        return path
 
     bar = tqdm(total=cfg.episodes, initial=prog.episodes, disable=not progress, unit="ep", dynamic_ncols=True)
     t_start, wall0 = time.perf_counter(), prog.wall_s
     last_save = time.monotonic()
     done: set[int] = set()
+    died: dict[int, int] = {}  # worker -> exit code, of the workers killed (not one that reported an error)
     with stop_after_batch() as stop_asked:  # till the workers are gone: a signal meanwhile is a request
         try:
             with _deaf_children():
                 for p in procs:
                     p.start()
             while len(done) < len(procs):
-                if stop_asked() is not None:  # the workers end after the batch they are on
+                for w, p in enumerate(procs):  # checked at every message: the others keep the queue busy
+                    if w not in done and p.exitcode not in (None, 0):
+                        died[w] = p.exitcode
+                        done.add(w)
+                if stop_asked() is not None or died:  # the workers end after the batch they are on
                     stop.value = 1
                 try:
                     msg = results.get(timeout=1.0)
                 except queue_mod.Empty:
-                    dead = [w for w, p in enumerate(procs) if p.exitcode not in (None, 0) and w not in done]
-                    if dead:
-                        raise RuntimeError(f"a3c worker {dead[0]} died (exit code {procs[dead[0]].exitcode})") from None
+                    if died:  # the others may wait on a lock the dead one held
+                        with _locked(lock, saved_as[0]):
+                            pass
                     continue
                 if msg[0] == "error":
-                    with lock:
+                    with _locked(lock, saved_as[0]):
                         if first_nonfinite(**checkpoint_weights(learner)):  # a worker failed on NaN weights: say so
                             finite_or_stop(out, learner, prog.episodes)
                     raise RuntimeError(f"a3c worker {msg[1]} failed:\n{msg[2]}")
@@ -292,7 +327,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 row.update(learner.senders_wait.figures())
                 # between two steps, as `save` reads: unlocked, this check once found a NaN that no worker's step
                 # had before or after it (docs/tuning.md session 48)
-                with lock:
+                with _locked(lock, saved_as[0]):
                     finite_or_stop(out, learner, prog.episodes)
                 logger.log(row)
                 # workers overshoot the budget: the bar stops at it
@@ -305,6 +340,12 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
             for p in procs:
                 p.join()
             path = save()
+            if died:
+                w, code = next(iter(died.items()))
+                raise ConfigError(
+                    f"a3c worker {w} (pid {procs[w].pid}) died (exit code {code}); the others stopped after their "
+                    f"batch, saved after {prog.episodes} episodes as {path}; --resume goes on"
+                )
             signum = stop_asked()
             if signum is not None:  # as `train_batches`
                 bar.close()

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import is_env_config, read_config, resolve
+from bitcomm.envs.subproc_vector import WorkerDied
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
@@ -75,8 +76,14 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
 
     def play_and_learn() -> dict[str, Any]:
         t0 = time.perf_counter()
-        # rollout: batch k's episodes are fixed by (seed, k)
-        ro = play(vec, learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,)), generator)
+        rng = generator.get_state(), torch.get_rng_state()
+        try:  # rollout: batch k's episodes are fixed by (seed, k)
+            ro = play(vec, learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,)), generator)
+        except WorkerDied as err:  # the learner is as the last batch left it: save that, as a stop signal would
+            generator.set_state(rng[0])  # and the draws as they were, so a resume plays this batch as it would have
+            torch.set_rng_state(rng[1])
+            path = save(None)
+            raise ConfigError(f"{err}; saved after {prog.episodes} episodes as {path}; --resume goes on") from None
         # update
         stats = learner.update(ro, generator)
         learner.policy.obs_norm.update(ro.obs, ro.alive)  # after the update: one batch, one set of statistics

@@ -12,6 +12,9 @@
     #           update's staleness
     # faults    an actor that dies is replaced and the batch it was playing is asked of the new one; checkpoints
     #           are the local trainers' (atomic, same state), so a run resumes on either backend
+    # stop      Ctrl-C or SIGTERM (`stop_after_batch`; SIGTERM taken back from the handler `ray.init` installs,
+    #           which ended the run unsaved) launches no more batches: the ones in flight are consumed, the run saves
+    #           and exits as sync mode's does (130, 143), and `--resume` goes on
 
 Reproducible: with staleness 0 a run is bit for bit the same for a given seed, `workers` and `num_envs` (which
 batches an update joins and the weights each was played with are fixed), through actor deaths and resumes.
@@ -25,7 +28,9 @@ from __future__ import annotations
 import math
 import os
 import re
+import signal
 import socket
+import threading
 import time
 import uuid
 from collections.abc import Iterator
@@ -48,6 +53,8 @@ from bitcomm.learn.run_folder import (
     prepare,
     restore_learner,
     save_learner,
+    stop_after_batch,
+    stopped,
     write_config,
 )
 from bitcomm.policies.denormals import flush_denormals
@@ -304,12 +311,22 @@ def train_ray(
         raise bad_value("backend", cfg.backend, "Ray is not installed (pip install 'bitcomm[ray]')") from None
     if cfg.backend != "ray":
         raise bad_value("backend", cfg.backend, "train_ray needs backend='ray'")
+    before = signal.getsignal(signal.SIGTERM)
     started = connect(address, cfg.workers)
+    rays = signal.getsignal(signal.SIGTERM)
     try:
+        _set_sigterm(before)  # `ray.init`'s handler ends the run unsaved (`sys.exit(15)`): `_train` stops it saved
         return _train(cfg, out, resume, progress)
     finally:
+        _set_sigterm(rays)
         if started:
             ray.shutdown()
+
+
+def _set_sigterm(handler: Any) -> None:
+    """Make `handler` SIGTERM's where Python can (in the main thread, a handler Python knows of)."""
+    if handler is not None and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, handler)
 
 
 def _policy_weights(policy: torch.nn.Module) -> dict[str, np.ndarray]:
@@ -387,34 +404,40 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
         next_batch += 1
 
     def wanted() -> bool:
-        return prog.episodes + len(actors.inflight) * cfg.num_envs < cfg.episodes
+        return prog.episodes + len(actors.inflight) * cfg.num_envs < cfg.episodes and stop_asked() is None
 
-    try:
-        if S == 0:  # synchronous: every actor plays one batch with the same weights, one update on them all
-            while prog.episodes < cfg.episodes:
-                for w in range(min(N, math.ceil((cfg.episodes - prog.episodes) / cfg.num_envs))):
-                    launch(w)
-                got = []
+    with stop_after_batch() as stop_asked:  # a stop signal meanwhile is a request: in-flight batches are used
+        try:
+            if S == 0:  # synchronous: every actor plays one batch with the same weights, one update on them all
+                while prog.episodes < cfg.episodes and stop_asked() is None:
+                    for w in range(min(N, math.ceil((cfg.episodes - prog.episodes) / cfg.num_envs))):
+                        launch(w)
+                    got = []
+                    while actors.inflight:
+                        if (arrived := actors.receive(weights, version)) is not None:
+                            got.append(arrived[1])
+                    consume(sorted(got, key=lambda b: b["batch"]), 0)
+            else:  # asynchronous: update on each batch as it arrives, within the staleness bound
+                for w in range(N):
+                    if wanted():
+                        launch(w)
                 while actors.inflight:
-                    if (arrived := actors.receive(weights, version)) is not None:
-                        got.append(arrived[1])
-                consume(sorted(got, key=lambda b: b["batch"]), 0)
-        else:  # asynchronous: update on each batch as it arrives, within the staleness bound
-            for w in range(N):
-                if wanted():
-                    launch(w)
-            while actors.inflight:
-                if (arrived := actors.receive(weights, version)) is None:
-                    continue
-                w, batch = arrived
-                if version - batch["version"] > S:
-                    dropped += 1
-                else:
-                    consume([batch], version - batch["version"])
-                if wanted():
-                    launch(w)
-        return save()
-    finally:
-        actors.stop()
-        bar.close()
-        logger.close()
+                    if (arrived := actors.receive(weights, version)) is None:
+                        continue
+                    w, batch = arrived
+                    if version - batch["version"] > S:
+                        dropped += 1
+                    else:
+                        consume([batch], version - batch["version"])
+                    if wanted():
+                        launch(w)
+            path = save()
+            signum = stop_asked()
+            if signum is not None:  # as `train_batches`
+                bar.close()
+                raise stopped(signum, prog.episodes, path)
+            return path
+        finally:
+            actors.stop()
+            bar.close()
+            logger.close()
