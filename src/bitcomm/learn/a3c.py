@@ -55,8 +55,8 @@ from bitcomm.learn.run_folder import (
     prepare,
     restore_learner,
     save_run_checkpoint,
+    saved_or_stopped,
     stop_after_batch,
-    stopped,
     write_config,
 )
 from bitcomm.policies.denormals import flush_denormals
@@ -346,11 +346,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                     f"a3c worker {w} (pid {procs[w].pid}) died (exit code {code}); the others stopped after their "
                     f"batch, saved after {prog.episodes} episodes as {path}; --resume goes on"
                 )
-            signum = stop_asked()
-            if signum is not None:  # as `train_batches`
-                bar.close()
-                raise stopped(signum, prog.episodes, path)
-            return path
+            return saved_or_stopped(stop_asked(), prog.episodes, path, bar)
         finally:
             for p in procs:
                 if p.pid is None:  # never started (start() itself failed)

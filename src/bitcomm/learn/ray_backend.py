@@ -53,8 +53,8 @@ from bitcomm.learn.run_folder import (
     prepare,
     restore_learner,
     save_learner,
+    saved_or_stopped,
     stop_after_batch,
-    stopped,
     write_config,
 )
 from bitcomm.policies.denormals import flush_denormals
@@ -432,11 +432,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
                     if wanted():
                         launch(w)
             path = save()
-            signum = stop_asked()
-            if signum is not None:  # as `train_batches`
-                bar.close()
-                raise stopped(signum, prog.episodes, path)
-            return path
+            return saved_or_stopped(stop_asked(), prog.episodes, path, bar)
         finally:
             actors.stop()
             bar.close()

@@ -605,6 +605,15 @@ def stopped(signum: int, episodes: int, path: Path) -> Stopped:
     return Stopped(signum)
 
 
+def saved_or_stopped(signum: int | None, episodes: int, path: Path, bar: Any) -> Path:
+    """The end of a trainer's loop once its last checkpoint is saved at `path`: the path, or, where
+    `stop_after_batch` asked for a stop (`signum`), the progress bar closed and `stopped` raised."""
+    if signum is not None:
+        bar.close()
+        raise stopped(signum, episodes, path)
+    return path
+
+
 def _stoppable_signals() -> list[signal.Signals]:
     """The signals a training loop may take over: SIGINT where Python's own handler has it (not where it is
     ignored, as in a background job, or another handler took it), and SIGTERM (what `kill PID` and a cluster
