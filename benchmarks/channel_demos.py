@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bitcomm.studies.stats import mean_interval
+from bitcomm.stats import mean_interval
 
 
 def bitcomm(*args: str, threads: int) -> str:

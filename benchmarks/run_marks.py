@@ -6,7 +6,7 @@ mark, interpolated between logged batches as the study's tables are, and the epi
 after which it first fell below 2x and 1.15x the oracle. The oracle is played on the study's evaluation set
 (`--eval-episodes` episodes of `--eval-seed`, 1,000 of seed 1000 as in `bitcomm compare`) for each task the
 runs were trained on. Then, per technique (estimator + message head) and task, the mean and 95% interval over
-the runs given (Student's t, `bitcomm.studies.stats`) at each mark (of the runs that played that far), and how
+the runs given (Student's t, `bitcomm.stats`) at each mark (of the runs that played that far), and how
 many runs reached each level.
 And per run, where its metrics.csv logs the marginal message entropy (a recipe with the marginal bonus, the
 default's), how much its messages say about what the senders see: `charts/entropy_message_marginal` (the entropy of

@@ -16,7 +16,7 @@ Only the speaker talks through bitcomm's channel (topology speaker_0 -> listener
 Each run is measured on the same `--eval-episodes` episodes (seed `--eval-seed`, sampling); `bitcomm` runs
 are also measured with the channel cut at evaluation (`cut at eval`). The table gives the mean team return
 (the sum over the episode's 25 steps of the shared reward, minus the squared distance to the goal) over seeds
-with a 95% Student's t interval (`bitcomm.studies.stats`) and the information the speaker's messages carry
+with a 95% Student's t interval (`bitcomm.stats`) and the information the speaker's messages carry
 about the goal colour (estimated from counts over 256 episodes), and writes it into docs/env_learning.md between
 markers. Finished runs are skipped and unfinished ones resumed, so the script can be stopped and rerun; a run
 another call of the script is training (its folder's lock is held) is skipped, so two calls share the work.
@@ -151,7 +151,7 @@ def wall_seconds(run: Path) -> float:
 
 
 def table(results: dict[str, list[dict[str, float]]], args: argparse.Namespace) -> str:
-    from bitcomm.studies.stats import mean_interval
+    from bitcomm.stats import mean_interval
 
     lines = [
         f"MPE2 `simple_speaker_listener_v4`, K = {args.bits} bits, delay 1, {args.episodes} training episodes per run "

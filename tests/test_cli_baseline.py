@@ -59,6 +59,16 @@ def test_random_policy_mostly_runs_to_truncation() -> None:
     assert out["success_rate"] < 0.1
 
 
+def test_the_random_policy_s_interval_never_passes_the_episode_cap() -> None:
+    """Over 3 episodes of which one ends early (21.33 steps on average), t standard errors reach past both 1 step
+    and the 30-step cap; the interval stays within what an episode can last, and one episode's is all that is
+    possible."""
+    out = baseline_json("--policy", "random", "--episodes", "3", "--seed", "2", "--size", "3", "--max-steps", "30")
+    assert 0 < out["success_rate"] < 1 and out["ci95"] == [1.0, 30.0]
+    one = baseline_json("--policy", "random", "--episodes", "1", "--seed", "1", "--max-steps", "40")
+    assert one["ci95"] == [1.0, 40.0]
+
+
 def test_bit_flips_make_the_oracle_measurably_worse(oracle_reference: dict) -> None:
     noisy = baseline_json("--policy", "oracle", "--episodes", "20000", "--seed", "1", "--flip-prob", "0.05")
     assert noisy["ci95"][0] > oracle_reference["ci95"][1]  # the intervals do not overlap

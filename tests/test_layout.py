@@ -3,7 +3,7 @@ imports only the layers below it (what its `__init__` docstring says it may impo
 
 Every import counts, at module level or inside a function, except those under `if TYPE_CHECKING:`
 (they never run). `bitcomm` (the root `__init__`, whose public names load lazily) and the modules beside
-it (config, errors, checkpoint, run_lock, plotting) are the base layer; `bitcomm.cli` and `bitcomm.__main__`
+it (config, errors, checkpoint, run_lock, plotting, stats) are the base layer; `bitcomm.cli` and `bitcomm.__main__`
 (`python -m bitcomm`) sit with the commands.
 """
 

@@ -55,6 +55,8 @@ class EpisodeOutcome:
 @dataclass(frozen=True)
 class DeployResult:
     outcomes: list[EpisodeOutcome]
+    max_steps: int
+    """The task's episode cap, the longest an outcome can last (the summary's interval stays within it)."""
     network: dict[str, int] = field(default_factory=dict)
     """Datagram counts summed over agents: sent, dropped (on purpose), received, missing (at the deadline), late;
     and `control_malformed`, the control lines the world ignored."""
@@ -67,6 +69,7 @@ class DeployResult:
             np.array([o.length for o in self.outcomes]),
             np.array([o.team_return for o in self.outcomes]),
             np.array([o.success for o in self.outcomes]),
+            self.max_steps,
         )
 
 
@@ -287,6 +290,6 @@ def run_deploy(
                 if key not in ("type", "agent"):
                     network[key] = network.get(key, 0) + int(value)
         network["control_malformed"] = agents.malformed
-        return DeployResult(outcomes, network, startup, time.monotonic() - began)
+        return DeployResult(outcomes, task.env.max_steps, network, startup, time.monotonic() - began)
     finally:
         agents.close()

@@ -7,6 +7,6 @@ write (`run_folder.py`). The same core on any channel-wrapped PettingZoo env: `e
 `env_rollout.py`, `env_learner.py` (multi-recipient credit), `env_run.py`, `env_eval.py`.
 
 May import: `bitcomm.config`, `bitcomm.errors`, `bitcomm.checkpoint`, `bitcomm.run_lock`,
-`bitcomm.plotting`, `bitcomm.channel`, `bitcomm.envs`, `bitcomm.policies`. Importing the package
+`bitcomm.plotting`, `bitcomm.stats`, `bitcomm.channel`, `bitcomm.envs`, `bitcomm.policies`. Importing the package
 imports nothing (no torch): the CLI reads `options.py` to build its flags.
 """

@@ -2,13 +2,13 @@
 
 Episodes are played in chunks of B first episodes, chunk c seeded by `SeedSequence(seed, spawn_key=(c,))`
 and sampling from a generator seeded with `seed`, so two policies measured with one seed face the same
-episodes. Intervals are 95% normal intervals over episodes (1.96 standard errors). `drop_prob` replaces
+episodes. Intervals are 95% Student's t intervals over episodes (`bitcomm.stats`; an env's own episode
+length and return ranges are unknown here, so they are not cut to them). `drop_prob` replaces
 the channel's drop probability (1 cuts the channel: the learned no-communication level of the same network).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -22,6 +22,7 @@ from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_rollout import make_vec, play
 from bitcomm.learn.run_folder import config_of
 from bitcomm.policies.mlp import MlpPolicy
+from bitcomm.stats import mean_interval
 
 EVAL_CHUNK = 256
 """Episodes played side by side."""
@@ -42,9 +43,8 @@ class EnvEvalResult:
 
 
 def _interval(x: np.ndarray) -> tuple[float, tuple[float, float]]:
-    mean = float(np.mean(x))
-    half = 1.96 * float(np.std(x, ddof=1)) / math.sqrt(len(x)) if len(x) > 1 else 0.0
-    return mean, (mean - half, mean + half)
+    mean, low, high = (float(v) for v in mean_interval(x))
+    return mean, (low, high)
 
 
 def chunk_seed(seed: int, chunk: int) -> np.random.SeedSequence:

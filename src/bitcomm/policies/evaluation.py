@@ -1,4 +1,5 @@
-"""One evaluator for every policy: mean episode length with a 95% interval, return, success.
+"""One evaluator for every policy: mean episode length with a 95% interval (Student's t, cut to the 1 to
+max_steps an episode can last), return, success.
 
 The episode set is fixed by the seed: slot k of chunk c always starts from the same cells with
 the same goals, whatever the policy, so two policies evaluated with one seed face the same
@@ -21,6 +22,7 @@ from bitcomm.envs.core import StepResult
 from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.errors import bad_value
 from bitcomm.policies.reference import Policy
+from bitcomm.stats import mean_interval
 
 if TYPE_CHECKING:
     from bitcomm.policies.controller import Controller
@@ -42,11 +44,10 @@ class EvalResult:
         return out
 
     @classmethod
-    def from_episodes(cls, lengths: np.ndarray, returns: np.ndarray, success: np.ndarray) -> EvalResult:
-        n = len(lengths)
-        mean = float(np.mean(lengths))
-        half = 1.96 * float(np.std(lengths, ddof=1)) / math.sqrt(n) if n > 1 else 0.0
-        return cls(n, mean, (mean - half, mean + half), float(np.mean(returns)), float(np.mean(success)))
+    def from_episodes(cls, lengths: np.ndarray, returns: np.ndarray, success: np.ndarray, max_steps: int) -> EvalResult:
+        """The figures of episodes that each lasted 1 to `max_steps` steps."""
+        mean, low, high = (float(x) for x in mean_interval(lengths, bounds=(1, max_steps)))
+        return cls(len(lengths), mean, (low, high), float(np.mean(returns)), float(np.mean(success)))
 
 
 class FirstEpisodeStep(NamedTuple):
@@ -120,7 +121,7 @@ def evaluate(
     from bitcomm.policies.denormals import flush_denormals  # torch: not at import, which `bitcomm --help` does
 
     with flush_denormals():  # as training does: the same numbers its checks measured, without the slow path
-        return EvalResult.from_episodes(*run_first_episodes(policy, task, episodes, seed))
+        return EvalResult.from_episodes(*run_first_episodes(policy, task, episodes, seed), task.env.max_steps)
 
 
 def evaluate_checkpoint(

@@ -57,7 +57,7 @@ from bitcomm.learn.options import Option, learning_options
 from bitcomm.learn.recipes import DEFAULT_RECIPE
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policies.source import TASK_FLAGS
-from bitcomm.studies.stats import mean_interval
+from bitcomm.stats import mean_interval
 
 if TYPE_CHECKING:
     from bitcomm.learn.config import TrainConfig
