@@ -374,6 +374,8 @@ def test_the_tables_read_every_curve_at_fractions_of_the_budget_as_the_plot_draw
         ["--eval-seed", "6", "--seeds", "2", "--first-seed", "5"],
         ["--first-seed", "4294967295", "--seeds", "2"],
         ["--seeds", "0"],
+        ["--episodes", "50"],  # below one batch of 128, which every run would play
+        ["--episodes", "64", "--vary", "num_envs=32,128"],
     ],
 )
 def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

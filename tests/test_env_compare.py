@@ -89,6 +89,7 @@ def test_a_folder_holding_another_study_is_refused(study: Path, capsys: pytest.C
         (["--vary", "lr=1e-3,3e-3"], "vary"),
         (["--mode", "a3c"], "mode"),
         (["--seeds", "2", "--eval-seed", "1"], "eval-seed"),
+        (["--episodes", "8", "--num-envs", "16"], "episodes"),  # below one batch, which every run would play
     ],
 )
 def test_options_that_do_not_apply_are_one_line(

@@ -91,7 +91,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--episodes",
         type=integer(1, MAX_TRAIN_EPISODES),
         default=None,
-        help=f"budget of every run (default {STUDY_EPISODES}; with --env, that of bitcomm train --env)",
+        help=f"budget of every run, at least one batch (default {STUDY_EPISODES}; with --env, that of bitcomm train "
+        "--env)",
     )
     p.add_argument(
         "--jobs", type=integer(1, MAX_JOBS), default=None, help="processes at once (default: the core count)"

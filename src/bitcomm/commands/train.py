@@ -57,8 +57,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--episodes",
         type=integer(1, MAX_TRAIN_EPISODES, "beyond 10^9 a run takes years"),
         default=None,
-        help=f"budget of environment episodes (default {field_default(*GRID_CONFIG, 'episodes'):,}; with --env "
-        f"{field_default(*ENV_CONFIG, 'episodes'):,})",
+        help=f"budget of environment episodes, played in whole batches of --num-envs (default "
+        f"{field_default(*GRID_CONFIG, 'episodes'):,}; with --env {field_default(*ENV_CONFIG, 'episodes'):,})",
     )
     p.add_argument("--seed", type=SEED, default=None, help="default 0")
     p.add_argument(

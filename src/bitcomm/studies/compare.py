@@ -279,11 +279,26 @@ def plan(cfg: CompareConfig) -> list[Run]:
     seeds); every config is built, so a bad value stops the study before anything is trained."""
     products = itertools.product(*([(name, v) for v in values] for name, values in cfg.vary.items()))
     configurations = [Configuration(t, values) for values in products for t in cfg.techniques]
-    return [
-        Run(conf, seed, train_config(cfg, conf, seed), cfg.out / "runs" / conf.folder / f"seed{seed}")
-        for seed in study_seeds(cfg)
-        for conf in configurations
-    ]
+    return check_budget(
+        [
+            Run(conf, seed, train_config(cfg, conf, seed), cfg.out / "runs" / conf.folder / f"seed{seed}")
+            for seed in study_seeds(cfg)
+            for conf in configurations
+        ]
+    )
+
+
+def check_budget(runs: list[Run]) -> list[Run]:
+    """`runs`, unless a budget is below one batch: a run plays whole batches, so it would play a batch while the
+    study's tables read its curve at fractions of a budget it never logged (one line instead)."""
+    for run in runs:
+        if run.train.episodes < run.train.num_envs:
+            raise bad_value(
+                "episodes", run.train.episodes,
+                f"less than one batch ({run.train.num_envs} episodes, --num-envs), and runs play whole batches; "
+                f"use at least {run.train.num_envs}",
+            )  # fmt: skip
+    return runs
 
 
 # ---------------------------------------------------------------------------------------------- runs

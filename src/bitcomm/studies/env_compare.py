@@ -39,6 +39,7 @@ from bitcomm.studies.compare import (
     along_budget_markdown,
     budget_marks,
     cell,
+    check_budget,
     check_study_fields,
     draw_seed_band,
     evaluation_of,
@@ -111,11 +112,13 @@ def run_config(cfg: EnvCompareConfig, technique: str, seed: int) -> EnvTrainConf
 
 def plan(cfg: EnvCompareConfig) -> list[Run]:
     """Every run of the study, seed by seed (a study stopped early has every technique's first seeds)."""
-    return [
-        Run(Configuration(t), seed, run_config(cfg, t, seed), cfg.out / "runs" / t / f"seed{seed}")
-        for seed in study_seeds(cfg)
-        for t in cfg.techniques
-    ]
+    return check_budget(
+        [
+            Run(Configuration(t), seed, run_config(cfg, t, seed), cfg.out / "runs" / t / f"seed{seed}")
+            for seed in study_seeds(cfg)
+            for t in cfg.techniques
+        ]
+    )
 
 
 def describe(run: Run, status: str, cfg: EnvCompareConfig) -> str:
