@@ -269,6 +269,7 @@ def test_commands_whose_time_is_torchs_take_threads(
         ["eval", "{corrupt_run}"],
         ["train", "--workers", "3"],  # sync mode has no workers
         ["train", "--conv-stride", "1"],  # the default recipe's encoder has no convolutions
+        ["train", "--coords"],  # nor coordinate planes to add to them
         ["train", "--foo", "1"],  # an unknown flag, named with its command
     ],
 )
@@ -289,6 +290,16 @@ def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.C
     assert rc == 2
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_recipe_s_coordinate_planes_stand_down_with_an_encoder_that_has_no_convolutions() -> None:
+    """`supervised` adds coordinate planes to its convolutions; with `--encoder marginals` they would do nothing,
+    so the run records them off rather than a setting it does not use."""
+    from bitcomm.learn.config import make_train_config
+
+    assert make_train_config("supervised").model.coords
+    assert not make_train_config("supervised", encoder="marginals").model.coords
+    assert make_train_config(encoder="conv", coords=True).model.coords
 
 
 def test_a3c_trains_shared_weights_and_resumes(tmp_path: Path) -> None:

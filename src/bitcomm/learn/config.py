@@ -458,5 +458,12 @@ def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = No
     check_instance("task", task, TaskConfig, TASK_ALLOWED)
     values = recipe_values(recipe, task, overrides.get("message_reads"))
     values.update({k: v for k, v in overrides.items() if v is not None})
+    if values.get("coords") and values.get("encoder", ModelConfig.encoder) != "conv":
+        if overrides.get("coords") is not None:  # typed: it would do nothing (a recipe's value just stands down)
+            raise bad_value(
+                "coords", True, "acts only with --encoder conv (the other encoders already read each plane's row and "
+                "column); leave it off",
+            )  # fmt: skip
+        values["coords"] = False
     model = ModelConfig(**{k: values.pop(k) for k in list(values) if k in MODEL_OPTIONS})
     return TrainConfig(task=task, model=model, recipe=recipe, **values)

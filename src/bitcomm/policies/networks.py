@@ -51,7 +51,9 @@ class ModelConfig:
     """Width of the two fully connected layers after the concatenation."""
     coords: bool = False
     """Add row and column coordinate planes to the observation (CoordConv), so that comparing a
-    decoded goal with one's own position is a linear read-out rather than a lookup."""
+    decoded goal with one's own position is a linear read-out rather than a lookup. Only the `conv` encoder
+    reads them (a coordinate plane's row and column sums are constant), so `make_train_config` refuses it typed
+    with another encoder, and sets a recipe's value off there."""
     plane_coords: bool = False
     """Also give the fully connected layers each input plane's centre of mass (its row and column in
     [-1, 1]): the exact cell of a one-hot plane, the expected cell of a decoded message map. Moving
