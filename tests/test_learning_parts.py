@@ -13,7 +13,7 @@ from bitcomm.learn.config import make_train_config
 from bitcomm.learn.learner import BatchFeatures, Learner
 from bitcomm.learn.move_decay import MoveDecay
 from bitcomm.learn.rollout import Collector
-from bitcomm.learn.run_folder import oracle_level
+from bitcomm.learn.run_folder import oracle_level, training_oracle_level
 from bitcomm.policies.heads import BitwiseHead, OneHotHead, make_head
 from bitcomm.policies.networks import CriticNet, ModelConfig, PolicyNet
 
@@ -223,6 +223,22 @@ def test_sharpening_turns_an_entropy_bonus_into_a_penalty_along_the_schedule(opt
         assert weights[0] == pytest.approx(weights[1])
 
 
+def test_the_protocol_s_level_is_the_oracle_s_over_episodes_cut_as_training_cuts_them():
+    """A rolling training length counts a cut episode's steps up to the cut, so the level it must reach is the
+    oracle's multiple over episodes cut the same way; where no cut episode can fall below that level, the wait
+    has nothing to wait for and starts at once."""
+    from bitcomm.learn.level_watch import SendersWait
+
+    uncut = make_train_config(seed=0)  # 10x10 cut at 32 steps: no oracle episode is that long
+    assert training_oracle_level(uncut) == oracle_level(uncut)
+    assert SendersWait.from_config(uncut).threshold == pytest.approx(1.15 * oracle_level(uncut))
+    cut = make_train_config(seed=0, train_max_steps=10)  # the oracle's mean 8.17 steps over these, 8.74 uncut
+    assert training_oracle_level(cut) < oracle_level(cut)
+    assert SendersWait.from_config(cut).threshold == pytest.approx(1.15 * training_oracle_level(cut))  # not 10.06
+    hopeless = make_train_config(seed=0, train_max_steps=8)  # 1.15 x the cut oracle's 7.28 steps: past 8
+    assert not SendersWait.from_config(hopeless).waits
+
+
 def test_a_move_decay_from_the_protocols_progress_waits_then_ends_with_the_schedule():
     """`move_decay_below`: whole until the rolling length reaches the threshold, then linear to zero at the
     schedule's end; without it, the budget's decay from the first episode (the default, unchanged)."""
@@ -242,7 +258,7 @@ def test_a_move_decay_from_the_protocols_progress_waits_then_ends_with_the_sched
     task = dataclasses.replace(TINY, channel=ChannelConfig(bits=4))
     cfg = make_train_config("reinforced", task, num_envs=4, move_decay_below=2.0)
     learner, collector = Learner(cfg), Collector(task, 4)
-    assert learner.move_decay.threshold == pytest.approx(2.0 * oracle_level(cfg))
+    assert learner.move_decay.threshold == pytest.approx(2.0 * training_oracle_level(cfg))
     rollout = collector.collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
     base = {name: getattr(cfg, name) for name in MOVE_REGULARISERS + MESSAGE_REGULARISERS}
 

@@ -139,7 +139,8 @@ class TrainConfig:
     1.05x of the oracle on 3 runs, no more often than without (docs/tuning.md session 28), so it is off."""
     move_decay_below: float = 0.0
     """Start the move regularisers' decay (`anneal_move_entropy`, `anneal_entropy`) only once the rolling training
-    episode length is at most this multiple of the oracle's, then decay them linearly to zero by the schedule's end
+    episode length is at most this multiple of the oracle's (over episodes cut at `train_max_steps`, as the rolling
+    length's are: `bitcomm.learn.level_watch`), then decay them linearly to zero by the schedule's end
     (0: from the first episode). Where the protocol forms late in the budget (32x32), a decay from the start slows
     it; at 10x10 the decay from the start is the better one (docs/tuning.md session 23). Sync mode only, where one
     learner sees the rolling length."""
@@ -173,7 +174,8 @@ class TrainConfig:
     """The schedule's progress (0 to 1) from which `held_messages` plays its episodes."""
     senders_wait_below: float = 0.0
     """Start the greedy senders and held words (`greedy_senders`, `held_messages`) only once the rolling training
-    episode length has been at most this multiple of the oracle's, and not before their own `_from` (0: at their
+    episode length has been at most this multiple of the oracle's (over episodes cut as training's are), and not
+    before their own `_from` (0: at their
     `_from`, whatever the play). Their episodes teach the receivers the words greedy play sends; where those words
     have not formed by halfway (16x16, 32x32) they teach words the senders are about to change, and the sampled play of
     every default run was set back there (docs/tuning.md sessions 38 and 46). On (1.15) in the `reinforced` recipe
