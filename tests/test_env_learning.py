@@ -137,6 +137,25 @@ class SpacesEnv(ParallelEnv):
         return obs, dict.fromkeys(obs, 0.0), dict.fromkeys(obs, False), dict.fromkeys(obs, done), {a: {} for a in obs}
 
 
+class OddRewardEnv(SignalEnv):
+    """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...) from its `from_reset`-th
+    reset on (each copy counts its own; the first copy is also reset once when its spaces are read)."""
+
+    def __init__(self, reward: Any = "nan", from_reset: int = 1) -> None:
+        super().__init__()
+        self.reward, self.from_reset, self.resets = {"nan": np.nan, "inf": np.inf}.get(reward, reward), from_reset, 0
+
+    def reset(self, seed: int | None = None, options: Any = None) -> tuple[dict, dict]:
+        self.resets += 1
+        return super().reset(seed, options)
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        obs, rewards, term, trunc, infos = super().step(actions)
+        if self.resets >= self.from_reset:
+            rewards = dict.fromkeys(rewards, self.reward)
+        return obs, rewards, term, trunc, infos
+
+
 def config(**kw: Any) -> EnvTrainConfig:
     channel = EnvChannelConfig(**kw.pop("channel", {"bits": 2}))
     base: dict[str, Any] = dict(env=SPEC, num_envs=8, episodes=16, hidden=(32,), checkpoint_seconds=1e9)
@@ -389,6 +408,35 @@ def test_resume_gives_the_uninterrupted_run(tmp_path: Path) -> None:
     rows = [(tmp_path / r / "metrics.csv").read_text().splitlines() for r in ("whole", "split")]
     strip = [[",".join(x for i, x in enumerate(line.split(",")) if i != 3) for line in r] for r in rows]  # wall_s
     assert strip[0] == strip[1] and len(strip[0]) == 5
+
+
+@pytest.mark.parametrize(("reward", "shown"), [("nan", "nan"), ("inf", "inf"), (None, "None"), ("high", "'high'")])
+def test_a_reward_that_is_not_a_finite_number_is_one_line(
+    reward: Any, shown: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not "training diverged ... a smaller --lr may help": the env's value, named, before it reaches the learner."""
+    kwargs = json.dumps({"reward": reward})
+    argv = ["train", "--env", f"{__name__}:OddRewardEnv", "--env-kwargs", kwargs, "--num-envs", "8", "--episodes", "8"]
+    code = main([*argv, "--hidden", "16", "--out", str(tmp_path / "run"), "--quiet", "--eval-episodes", "0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == [
+        f"bitcomm train: error: invalid rewards['speaker']={shown}: the env's rewards must be finite numbers"
+    ], err
+    assert not list(tmp_path.glob("run/checkpoints/*.safetensors"))  # nothing learned: the same command starts afresh
+
+
+def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:
+    """The first copy gives NaN rewards from its third reset (spaces, batch 0, batch 1): batch 0 is learned and
+    saved, as when a worker dies, so that the run loses nothing when its env is mended."""
+    cfg = config(env=f"{__name__}:OddRewardEnv", env_kwargs={"reward": "nan", "from_reset": 3})
+    with pytest.raises(ConfigError) as err:
+        train_env(cfg, tmp_path / "run", progress=False)
+    saved = tmp_path / "run" / "checkpoints" / "ckpt_000000008.safetensors"
+    assert str(err.value) == (
+        f"invalid rewards['speaker']=nan: the env's rewards must be finite numbers; saved after 8 episodes as "
+        f"{saved}; --resume goes on"
+    )
+    assert saved.is_file()
 
 
 @pytest.mark.parametrize(
