@@ -156,6 +156,20 @@ class OddRewardEnv(SignalEnv):
         return obs, rewards, term, trunc, infos
 
 
+class CountedEnv(SignalEnv):
+    """SignalEnv that counts the copies made and closed (an env may hold a window, files or a process)."""
+
+    made: list[CountedEnv] = []
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.closed = False
+        CountedEnv.made.append(self)
+
+    def close(self) -> None:
+        self.closed = True
+
+
 def config(**kw: Any) -> EnvTrainConfig:
     channel = EnvChannelConfig(**kw.pop("channel", {"bits": 2}))
     base: dict[str, Any] = dict(env=SPEC, num_envs=8, episodes=16, hidden=(32,), checkpoint_seconds=1e9)
@@ -437,6 +451,14 @@ def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:
         f"{saved}; --resume goes on"
     )
     assert saved.is_file()
+
+
+@pytest.mark.usefixtures("trust_test_envs")
+def test_evaluating_a_run_closes_the_envs_it_made(tmp_path: Path) -> None:
+    path = train_env(config(env=f"{__name__}:CountedEnv"), tmp_path / "run", progress=False)
+    CountedEnv.made.clear()
+    evaluate_env(path, 4, seed=0)
+    assert CountedEnv.made and all(env.closed for env in CountedEnv.made)
 
 
 @pytest.mark.parametrize(
