@@ -352,6 +352,47 @@ def test_multi_recipient_credit_by_hand() -> None:
     assert adv.action[3, 0, 2].item() == 0.0  # agent 2 is absent at t=3
 
 
+def test_a_message_sent_before_its_sender_left_is_credited_on_arrival_by_hand() -> None:
+    """Agent 0 talks to agents 1 and 2, delay 2, and leaves after step 1: its messages of steps 0 and 1 are in
+    flight when it leaves, reach their recipients at steps 2 and 3 (BitChannel delivers them) and are credited
+    there. The baseline at arrival never gives the absent sender's action; it sends nothing after it left (no
+    credit, no log-probability). Agent 2 is truncated after step 2 while agent 1 plays on: at step 3 only
+    agent 1 credits agent 0's last message."""
+    n, T, d, gamma = 3, 5, 2, 0.5
+    rec = np.zeros((n, n), bool)
+    rec[0, 1] = rec[0, 2] = True
+    layout = EnvLayout(
+        ("a", "b", "c"), (1, 1, 1), 1, 1, d, True, (2, 2, 2), np.zeros((n, 2)), np.zeros((n, 2)), 1, True,
+        np.zeros(n, bool), rec,
+    )  # fmt: skip
+    cfg = config(estimator="improved", gamma=gamma, adv_norm=False, channel={"bits": 1, "delay": d})
+    learner = EnvLearner(cfg, layout)
+    learner.critic = StubCritic()  # type: ignore[assignment]
+    alive = torch.ones(T, 1, n, dtype=torch.bool)
+    alive[2:, 0, 0] = False  # agent 0 acts at steps 0 and 1 only
+    alive[3:, 0, 2] = False  # agent 2 at steps 0 to 2
+    rewards = torch.tensor([[1.0], [2.0], [3.0], [4.0], [5.0]])
+    done, valid = torch.zeros(T, 1, dtype=torch.bool), torch.ones(T, 1, dtype=torch.bool)
+    done[-1] = True
+    z = torch.zeros(T, 1, n)
+    ro = EnvRollout(
+        z[..., None], torch.zeros(T, 1, n, 1, 1, dtype=torch.uint8), torch.arange(T).float().view(T, 1, 1), alive,
+        torch.zeros(T, 1, n, dtype=torch.long), torch.zeros(T, 1, n, 1, dtype=torch.uint8), z, z,
+        torch.zeros(T, 1, n, dtype=torch.bool), rewards, done, valid, np.array([T]), np.array([15.0]),
+    )  # fmt: skip
+    adv = learner.advantages(ro)
+    q = [1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 4 + 0.0625 * 5, 2 + 1.5 + 1 + 0.625, 3 + 2 + 1.25, 4 + 2.5, 5.0]
+
+    def v(t: int, viewpoint: int, given: list[int]) -> float:
+        return 1000 * t + 100 * (viewpoint + 1) + sum(2**k for k in given)
+
+    # the recipients' actions are masked and agent 0 is absent at arrival: nothing is given
+    m0 = [0.25 * ((q[2] - v(2, 1, [])) + (q[2] - v(2, 2, []))), 0.25 * (q[3] - v(3, 1, [])), 0.0, 0.0, 0.0]
+    torch.testing.assert_close(adv.message[:, 0, 0], torch.tensor(m0))
+    assert (adv.action[2:, 0, 0] == 0).all()  # absent: no action credit either
+    assert adv.action[2, 0, 1].item() == pytest.approx(q[2] - v(2, 1, [2]))  # the absent agent 0 is not given
+
+
 def test_returns_are_the_estimators() -> None:
     r = torch.tensor([[1.0], [1.0]])
     q = discounted_returns(r, torch.tensor([[False], [True]]), torch.ones(2, 1, dtype=torch.bool), 0.5)
