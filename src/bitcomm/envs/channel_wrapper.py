@@ -61,7 +61,8 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
     `bitcomm train --env` learns on those `bitcomm.envs.vector.EnvLayout` accepts.
 
     `step(actions)` takes actions for the live agents (`agents`); actions for agents that have left
-    are ignored, and such agents send zeros (their slot reads zeros, whatever the noise). Rewards,
+    are ignored, and such agents send zeros (their slot reads zeros, whatever the noise). The inner env
+    must drop a finished agent from its `agents` (PettingZoo's rule): one line otherwise. Rewards,
     terminations, truncations and infos are the inner env's; `infos[a]["message_dropped"]` says
     whether the message `a` sent this step was dropped.
 
