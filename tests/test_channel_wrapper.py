@@ -316,6 +316,35 @@ def test_a_step_takes_actions_of_live_agents_only() -> None:
             env.step({"a": act, "b": plain})
 
 
+class KeepsFinished(Toy):
+    """Toy with PettingZoo's rule broken: an agent that terminates or truncates stays in `agents`."""
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        live = list(self.agents)
+        out = super().step(actions)
+        self.agents = live
+        return out
+
+
+def test_an_env_that_keeps_a_finished_agent_while_others_play_on_is_one_line() -> None:
+    """Kept, `c` would be asked for actions and its messages sent after it left; a learner would count it present."""
+    act = {"action": 0, "message": np.ones(2, np.int8)}
+    env = BitChannel(KeepsFinished(steps=8, c_steps=2), bits=2)
+    env.reset(seed=0)
+    env.step(dict.fromkeys("abc", act))
+    with pytest.raises(ConfigError) as err:
+        env.step(dict.fromkeys("abc", act))
+    assert str(err.value) == (
+        "invalid env.agents=['a', 'b', 'c']: 'c' terminated or truncated at this step but is still listed while "
+        "others play on; a PettingZoo ParallelEnv removes an agent from env.agents once it is done"
+    )
+    # every agent still listed, all done, at the end of the episode: nothing is stepped after it, so it passes
+    env = BitChannel(KeepsFinished(steps=2), bits=2)
+    env.reset(seed=0)
+    truncated = [env.step(dict.fromkeys("abc", act))[3] for _ in range(2)][-1]
+    assert all(truncated.values()) and env.agents == ["a", "b", "c"]
+
+
 def test_fixed_actions_replace_the_inner_action() -> None:
     toy = Toy(steps=3)
     env = BitChannel(toy, bits=2, fixed_actions={"b": 2})

@@ -137,6 +137,39 @@ class SpacesEnv(ParallelEnv):
         return obs, dict.fromkeys(obs, 0.0), dict.fromkeys(obs, False), dict.fromkeys(obs, done), {a: {} for a in obs}
 
 
+class OddRewardEnv(SignalEnv):
+    """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...) from its `from_reset`-th
+    reset on (each copy counts its own; the first copy is also reset once when its spaces are read)."""
+
+    def __init__(self, reward: Any = "nan", from_reset: int = 1) -> None:
+        super().__init__()
+        self.reward, self.from_reset, self.resets = {"nan": np.nan, "inf": np.inf}.get(reward, reward), from_reset, 0
+
+    def reset(self, seed: int | None = None, options: Any = None) -> tuple[dict, dict]:
+        self.resets += 1
+        return super().reset(seed, options)
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        obs, rewards, term, trunc, infos = super().step(actions)
+        if self.resets >= self.from_reset:
+            rewards = dict.fromkeys(rewards, self.reward)
+        return obs, rewards, term, trunc, infos
+
+
+class CountedEnv(SignalEnv):
+    """SignalEnv that counts the copies made and closed (an env may hold a window, files or a process)."""
+
+    made: list[CountedEnv] = []
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.closed = False
+        CountedEnv.made.append(self)
+
+    def close(self) -> None:
+        self.closed = True
+
+
 def config(**kw: Any) -> EnvTrainConfig:
     channel = EnvChannelConfig(**kw.pop("channel", {"bits": 2}))
     base: dict[str, Any] = dict(env=SPEC, num_envs=8, episodes=16, hidden=(32,), checkpoint_seconds=1e9)
@@ -319,6 +352,47 @@ def test_multi_recipient_credit_by_hand() -> None:
     assert adv.action[3, 0, 2].item() == 0.0  # agent 2 is absent at t=3
 
 
+def test_a_message_sent_before_its_sender_left_is_credited_on_arrival_by_hand() -> None:
+    """Agent 0 talks to agents 1 and 2, delay 2, and leaves after step 1: its messages of steps 0 and 1 are in
+    flight when it leaves, reach their recipients at steps 2 and 3 (BitChannel delivers them) and are credited
+    there. The baseline at arrival never gives the absent sender's action; it sends nothing after it left (no
+    credit, no log-probability). Agent 2 is truncated after step 2 while agent 1 plays on: at step 3 only
+    agent 1 credits agent 0's last message."""
+    n, T, d, gamma = 3, 5, 2, 0.5
+    rec = np.zeros((n, n), bool)
+    rec[0, 1] = rec[0, 2] = True
+    layout = EnvLayout(
+        ("a", "b", "c"), (1, 1, 1), 1, 1, d, True, (2, 2, 2), np.zeros((n, 2)), np.zeros((n, 2)), 1, True,
+        np.zeros(n, bool), rec,
+    )  # fmt: skip
+    cfg = config(estimator="improved", gamma=gamma, adv_norm=False, channel={"bits": 1, "delay": d})
+    learner = EnvLearner(cfg, layout)
+    learner.critic = StubCritic()  # type: ignore[assignment]
+    alive = torch.ones(T, 1, n, dtype=torch.bool)
+    alive[2:, 0, 0] = False  # agent 0 acts at steps 0 and 1 only
+    alive[3:, 0, 2] = False  # agent 2 at steps 0 to 2
+    rewards = torch.tensor([[1.0], [2.0], [3.0], [4.0], [5.0]])
+    done, valid = torch.zeros(T, 1, dtype=torch.bool), torch.ones(T, 1, dtype=torch.bool)
+    done[-1] = True
+    z = torch.zeros(T, 1, n)
+    ro = EnvRollout(
+        z[..., None], torch.zeros(T, 1, n, 1, 1, dtype=torch.uint8), torch.arange(T).float().view(T, 1, 1), alive,
+        torch.zeros(T, 1, n, dtype=torch.long), torch.zeros(T, 1, n, 1, dtype=torch.uint8), z, z,
+        torch.zeros(T, 1, n, dtype=torch.bool), rewards, done, valid, np.array([T]), np.array([15.0]),
+    )  # fmt: skip
+    adv = learner.advantages(ro)
+    q = [1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 4 + 0.0625 * 5, 2 + 1.5 + 1 + 0.625, 3 + 2 + 1.25, 4 + 2.5, 5.0]
+
+    def v(t: int, viewpoint: int, given: list[int]) -> float:
+        return 1000 * t + 100 * (viewpoint + 1) + sum(2**k for k in given)
+
+    # the recipients' actions are masked and agent 0 is absent at arrival: nothing is given
+    m0 = [0.25 * ((q[2] - v(2, 1, [])) + (q[2] - v(2, 2, []))), 0.25 * (q[3] - v(3, 1, [])), 0.0, 0.0, 0.0]
+    torch.testing.assert_close(adv.message[:, 0, 0], torch.tensor(m0))
+    assert (adv.action[2:, 0, 0] == 0).all()  # absent: no action credit either
+    assert adv.action[2, 0, 1].item() == pytest.approx(q[2] - v(2, 1, [2]))  # the absent agent 0 is not given
+
+
 def test_returns_are_the_estimators() -> None:
     r = torch.tensor([[1.0], [1.0]])
     q = discounted_returns(r, torch.tensor([[False], [True]]), torch.ones(2, 1, dtype=torch.bool), 0.5)
@@ -389,6 +463,43 @@ def test_resume_gives_the_uninterrupted_run(tmp_path: Path) -> None:
     rows = [(tmp_path / r / "metrics.csv").read_text().splitlines() for r in ("whole", "split")]
     strip = [[",".join(x for i, x in enumerate(line.split(",")) if i != 3) for line in r] for r in rows]  # wall_s
     assert strip[0] == strip[1] and len(strip[0]) == 5
+
+
+@pytest.mark.parametrize(("reward", "shown"), [("nan", "nan"), ("inf", "inf"), (None, "None"), ("high", "'high'")])
+def test_a_reward_that_is_not_a_finite_number_is_one_line(
+    reward: Any, shown: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not "training diverged ... a smaller --lr may help": the env's value, named, before it reaches the learner."""
+    kwargs = json.dumps({"reward": reward})
+    argv = ["train", "--env", f"{__name__}:OddRewardEnv", "--env-kwargs", kwargs, "--num-envs", "8", "--episodes", "8"]
+    code = main([*argv, "--hidden", "16", "--out", str(tmp_path / "run"), "--quiet", "--eval-episodes", "0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == [
+        f"bitcomm train: error: invalid rewards['speaker']={shown}: the env's rewards must be finite numbers"
+    ], err
+    assert not list(tmp_path.glob("run/checkpoints/*.safetensors"))  # nothing learned: the same command starts afresh
+
+
+def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:
+    """The first copy gives NaN rewards from its third reset (spaces, batch 0, batch 1): batch 0 is learned and
+    saved, as when a worker dies, so that the run loses nothing when its env is mended."""
+    cfg = config(env=f"{__name__}:OddRewardEnv", env_kwargs={"reward": "nan", "from_reset": 3})
+    with pytest.raises(ConfigError) as err:
+        train_env(cfg, tmp_path / "run", progress=False)
+    saved = tmp_path / "run" / "checkpoints" / "ckpt_000000008.safetensors"
+    assert str(err.value) == (
+        f"invalid rewards['speaker']=nan: the env's rewards must be finite numbers; saved after 8 episodes as "
+        f"{saved}; --resume goes on"
+    )
+    assert saved.is_file()
+
+
+@pytest.mark.usefixtures("trust_test_envs")
+def test_evaluating_a_run_closes_the_envs_it_made(tmp_path: Path) -> None:
+    path = train_env(config(env=f"{__name__}:CountedEnv"), tmp_path / "run", progress=False)
+    CountedEnv.made.clear()
+    evaluate_env(path, 4, seed=0)
+    assert CountedEnv.made and all(env.closed for env in CountedEnv.made)
 
 
 @pytest.mark.parametrize(

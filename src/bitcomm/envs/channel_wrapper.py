@@ -61,7 +61,8 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
     `bitcomm train --env` learns on those `bitcomm.envs.vector.EnvLayout` accepts.
 
     `step(actions)` takes actions for the live agents (`agents`); actions for agents that have left
-    are ignored, and such agents send zeros (their slot reads zeros, whatever the noise). Rewards,
+    are ignored, and such agents send zeros (their slot reads zeros, whatever the noise). The inner env
+    must drop a finished agent from its `agents` (PettingZoo's rule): one line otherwise. Rewards,
     terminations, truncations and infos are the inner env's; `infos[a]["message_dropped"]` says
     whether the message `a` sent this step was dropped.
 
@@ -188,7 +189,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         infos = {a: dict(info) for a, info in infos.items()}
         for agent, i in zip(live, rows, strict=True):
             infos.setdefault(agent, {})["message_dropped"] = bool(dropped[i])
-        self.agents = list(self.inner.agents)
+        self.agents = _live_after_step(self.inner, terminations, truncations)
         return self._augment(observations, received), rewards, terminations, truncations, infos
 
     def _messages(self, messages: list[Any], live: list[AgentID]) -> np.ndarray:
@@ -223,6 +224,22 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
 
     def close(self) -> None:
         self.inner.close()
+
+
+def _live_after_step(env: ParallelEnv, terminations: dict[AgentID, bool], truncations: dict[AgentID, bool]) -> list:
+    """The inner env's `agents` after a step, or one line if an agent that just finished is still among them
+    while others play on: a ParallelEnv removes an agent once it terminates or truncates (PettingZoo's
+    `parallel_api_test` checks it). Kept, it would be asked for actions, and its messages sent, after it left,
+    and a learner would count it as present for one more step. An env that lists every agent, all done, at the
+    end of the episode is let through: nothing is stepped after it."""
+    agents = list(env.agents)
+    done = [a for a in agents if terminations.get(a, False) or truncations.get(a, False)]
+    if done and len(done) < len(agents):
+        raise bad_value(
+            "env.agents", agents, f"{done[0]!r} terminated or truncated at this step but is still listed while "
+            "others play on; a PettingZoo ParallelEnv removes an agent from env.agents once it is done",
+        )  # fmt: skip
+    return agents
 
 
 def _inner_space(env: ParallelEnv, agent: AgentID, kind: str) -> spaces.Space:

@@ -25,6 +25,7 @@ processes; `WrappedEnvMaker` is the picklable maker both build their copies with
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
@@ -266,7 +267,7 @@ class VecEnv:
             joint = {a: {"action": self._action(actions[b, i], i), "message": messages[b, i]} for i, a in acting}
             obs, rew, term, trunc, infos = env.step(joint)
             for i, a in acting:
-                rewards[b, i] = rew.get(a, 0.0)
+                rewards[b, i] = finite_reward(rew.get(a, 0.0), a)
                 dropped[b, i] = bool(infos.get(a, {}).get("message_dropped", False))
             if not env.agents or all(term.get(a, False) or trunc.get(a, False) for _, a in acting):
                 ended[b] = True
@@ -287,6 +288,19 @@ class VecEnv:
 
     def _action(self, action: np.ndarray, i: int) -> Any:
         return inner_action(self.layout.action_spaces[i], action)
+
+
+def finite_reward(value: Any, agent: Any) -> float:
+    """An agent's reward as a float, or one line naming it: a NaN or infinite reward (or one that is not a
+    number) would otherwise reach the learner and stop the run as "training diverged", blaming the learning
+    rate for the env's value."""
+    try:
+        reward = float(value)
+    except (TypeError, ValueError):
+        reward = math.nan
+    if not math.isfinite(reward):
+        raise bad_value(f"rewards[{agent!r}]", value, "the env's rewards must be finite numbers")
+    return reward
 
 
 def flat_observation(space: spaces.Space, observation: Any) -> np.ndarray:

@@ -58,8 +58,9 @@ def load_env_policy(path: Path | str, typed_env: str | None = None) -> tuple[Env
     weights, info = load_weights(path)
     cfg = config_of(info["path"], info["config"], EnvTrainConfig.from_dict)
     check_recorded_env(cfg.env, info["path"], typed_env)
-    vec = make_vec(cfg, 1)
-    policy = MlpPolicy(vec.layout, cfg.messages, cfg.hidden, cfg.obs_norm)
+    with make_vec(cfg, 1) as vec:  # one copy, to read the layout; closed, as an env may hold a window or files
+        layout = vec.layout
+    policy = MlpPolicy(layout, cfg.messages, cfg.hidden, cfg.obs_norm)
     try:
         policy.load_state_dict(weights["policy"])
     except (KeyError, RuntimeError) as err:
@@ -80,16 +81,16 @@ def evaluate_env(
     """Play `episodes` seeded episodes with the policy of `path` on its env (channel drops changed by `drop_prob`;
     `typed_env` as in `load_env_policy`)."""
     cfg, policy = load_env_policy(path, typed_env)
-    vec = make_vec(cfg, min(episodes, EVAL_CHUNK), drop_prob)
     generator = torch.Generator().manual_seed(seed)
     returns: list[np.ndarray] = []
     lengths: list[np.ndarray] = []
     chunk = 0
-    while sum(len(r) for r in returns) < episodes:
-        ro = play(vec, policy, chunk_seed(seed, chunk), generator, greedy=greedy)
-        returns.append(ro.team_return)
-        lengths.append(ro.length)
-        chunk += 1
+    with make_vec(cfg, min(episodes, EVAL_CHUNK), drop_prob) as vec:
+        while sum(len(r) for r in returns) < episodes:
+            ro = play(vec, policy, chunk_seed(seed, chunk), generator, greedy=greedy)
+            returns.append(ro.team_return)
+            lengths.append(ro.length)
+            chunk += 1
     ret, ret_ci = _interval(np.concatenate(returns)[:episodes])
     length, len_ci = _interval(np.concatenate(lengths)[:episodes].astype(np.float64))
     return EnvEvalResult(episodes, ret, ret_ci, length, len_ci)

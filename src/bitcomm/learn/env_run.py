@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import is_env_config, read_config, resolve
-from bitcomm.envs.subproc_vector import WorkerDied
 from bitcomm.errors import ConfigError
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
@@ -79,7 +78,10 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
         rng = generator.get_state(), torch.get_rng_state()
         try:  # rollout: batch k's episodes are fixed by (seed, k)
             ro = play(vec, learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,)), generator)
-        except WorkerDied as err:  # the learner is as the last batch left it: save that, as a stop signal would
+        except ConfigError as err:  # a worker died (`WorkerDied`) or the env gave what it may not (a NaN reward...)
+            if not prog.batches:  # nothing learned yet: no checkpoint, so that the same command starts afresh
+                raise
+            # the learner is as the last batch left it: save that, as a stop signal would,
             generator.set_state(rng[0])  # and the draws as they were, so a resume plays this batch as it would have
             torch.set_rng_state(rng[1])
             path = save(None)
