@@ -93,9 +93,12 @@ def print_result(result: EvalResult, as_json: bool, title: str) -> None:
         json.dump(result.to_dict(), sys.stdout)
         sys.stdout.write("\n")
         return
+    from bitcomm.studies.compare import plural
+
     lo, hi = result.ci95
     print(
-        f"{title}: {result.episodes} episodes, mean episode length {result.mean_episode_length:.2f} "
-        f"(95% CI {lo:.2f}-{hi:.2f}), mean team return {result.mean_team_return:.3f}, "
+        f"{title}: {plural(result.episodes, 'episode', 'episodes')}, "
+        f"mean episode length {result.mean_episode_length:.2f} (95% CI {lo:.2f}-{hi:.2f}), "
+        f"mean team return {result.mean_team_return:.3f}, "
         f"success rate {result.success_rate:.3f}"
     )

@@ -192,9 +192,11 @@ def print_env_result(result: Any, as_json: bool, title: str) -> None:
     if as_json:
         print(json.dumps(result.to_dict()))
         return
+    from bitcomm.studies.compare import plural
+
     (rlo, rhi), (llo, lhi) = result.return_ci95, result.length_ci95
     print(
-        f"{title}: {result.episodes} episodes, mean team return {result.mean_team_return:.3f} "
+        f"{title}: {plural(result.episodes, 'episode', 'episodes')}, mean team return {result.mean_team_return:.3f} "
         f"(95% CI {rlo:.3f} to {rhi:.3f}), mean episode length {result.mean_episode_length:.2f} "
         f"(95% CI {llo:.2f}-{lhi:.2f})"
     )
