@@ -242,27 +242,42 @@ def read_metrics(path: Path, upto_batch: int) -> list[dict[str, str]]:
         ) from None
 
 
+TB_EVENTS = "events.out.tfevents.*"
+"""The files TensorBoard's writer adds to `<out>/tb`, one per start or resume."""
+
+
 class Logger:
-    """One row per batch, to metrics.csv and TensorBoard alike (x axis: episodes)."""
+    """One row per batch, to metrics.csv and TensorBoard alike (x axis: episodes).
+
+    TensorBoard shows what metrics.csv holds. A resume drops the rows logged past its checkpoint (a `kill -9`
+    leaves up to `checkpoint_seconds` of them) from both: from metrics.csv by rewriting it, from TensorBoard by
+    the `purge_step` of its writer, which hides every earlier event at or past the first step it will log, so
+    no step shows twice or goes backwards. A fresh run removes the event files of the run it replaces, as it
+    does metrics.csv."""
 
     def __init__(self, out: Path, resume_batches: int | None) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
         self.path = out / "metrics.csv"
         self.columns: list[str] | None = None
-        if resume_batches is not None and self.path.is_file():
-            rows = read_metrics(self.path, resume_batches)
+        purge: int | None = None
+        if resume_batches is not None:
+            rows = read_metrics(self.path, resume_batches) if self.path.is_file() else []
             if rows:
                 self.columns = list(rows[0])
-            with self.path.open("w", newline="") as f:  # drop rows past the checkpoint
-                if self.columns:
-                    w = csv.DictWriter(f, self.columns)
-                    w.writeheader()
-                    w.writerows(rows)
-        elif self.path.exists():
-            self.path.unlink()
+            if self.path.is_file():
+                with self.path.open("w", newline="") as f:  # drop rows past the checkpoint
+                    if self.columns:
+                        w = csv.DictWriter(f, self.columns)
+                        w.writeheader()
+                        w.writerows(rows)
+            purge = int(rows[-1]["episodes"]) + 1 if rows else 0
+        else:
+            self.path.unlink(missing_ok=True)
+            for events in (out / "tb").glob(TB_EVENTS):
+                events.unlink()
         self.file = self.path.open("a", newline="")
-        self.tb = SummaryWriter(str(out / "tb"), purge_step=None)
+        self.tb = SummaryWriter(str(out / "tb"), purge_step=purge)
 
     def log(self, row: dict[str, float]) -> None:
         if self.columns is None:
@@ -503,8 +518,8 @@ def has_checkpoint(out: Path) -> bool:
     return (out / CHECKPOINTS / LATEST).is_file()
 
 
-RUN_FILES = ("config.json", "metrics.csv", "learning_curve.png", "learning_curve.svg")
-"""The files a run writes at its folder's top, which a fresh run overwrites."""
+RUN_FILES = ("config.json", "metrics.csv", "learning_curve.png", "learning_curve.svg", "tb")
+"""The files (and TensorBoard's folder) a run writes at its folder's top, which a fresh run overwrites."""
 
 
 def is_run_folder(out: Path) -> bool:
