@@ -37,7 +37,8 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import make_train_config
 from bitcomm.learn.learner import Learner
-from bitcomm.learn.run_folder import learner_state, machine, machine_label, restore_learner, run_machines
+from bitcomm.learn.run_folder import learner_state, machine_label, restore_learner, run_machines
+from bitcomm.provenance import machine
 from bitcomm.run_lock import LOCK, run_lock
 
 TASK = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16"]
@@ -469,6 +470,61 @@ def test_a_fresh_run_leaves_alone_a_tensorboard_folder_that_is_not_a_runs(tmp_pa
     (tmp_path / "tb" / "events.out.tfevents.1.host.1.0").write_bytes(b"mine")
     refused(capsys, "train", *QUICK, "--episodes", "16", "--out", str(tmp_path), naming="tb")
     assert (tmp_path / "tb" / "events.out.tfevents.1.host.1.0").read_bytes() == b"mine"
+
+
+def git(folder: Path, *args: str) -> str:
+    return subprocess.run(
+        ["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=folder, check=True, capture_output=True,
+        text=True,
+    ).stdout.strip()  # fmt: skip
+
+
+def package_in(folder: Path) -> Path:
+    package = folder / "bitcomm"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    return package
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+def test_the_commit_recorded_is_bitcomms_own_and_says_whether_its_source_was_changed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A checkout records its commit, and `git_dirty` once the package's source differs from it; an installed copy
+    records no commit, even inside another project's repository (a `.venv` in it), whose commit is not bitcomm's."""
+    from bitcomm import provenance
+
+    checkout = tmp_path / "checkout"
+    package = package_in(checkout / "src")
+    git(checkout, "init", "-q")
+    git(checkout, "add", ".")
+    git(checkout, "commit", "-qm", "bitcomm")
+    monkeypatch.setattr(provenance, "PACKAGE", package)
+    head = git(checkout, "rev-parse", "HEAD")
+    assert provenance.git_state() == (head, False)
+    (checkout / "notes.txt").write_text("outside the package\n")
+    assert provenance.git_state() == (head, False)
+    (package / "new_module.py").write_text("x = 1\n")
+    assert provenance.git_state() == (head, True)
+    record = provenance.record()
+    assert tuple(record) == provenance.RECORDED and (record["git_commit"], record["git_dirty"]) == (head, True)
+
+    project = tmp_path / "project"
+    project.mkdir()
+    git(project, "init", "-q")
+    (project / ".gitignore").write_text(".venv/\n")
+    git(project, "add", ".")
+    git(project, "commit", "-qm", "a project that installs bitcomm")
+    monkeypatch.setattr(provenance, "PACKAGE", package_in(project / ".venv" / "site-packages"))
+    assert provenance.git_state() == (None, None)
+    monkeypatch.setattr(provenance, "PACKAGE", package_in(tmp_path / "site-packages"))
+    assert provenance.git_state() == (None, None)
+
+
+def test_a_run_records_its_commit_whether_its_source_was_changed_and_its_libraries(run: Path) -> None:
+    config = json.loads((run / "config.json").read_text())
+    assert "git_commit" in config and config["git_dirty"] in (True, False, None)
+    assert set(config["versions"]) >= {"python", "bitcomm", "torch", "numpy", "gymnasium", "pettingzoo"}
 
 
 # ---------------------------------------------------------------------------------------------- leftovers
