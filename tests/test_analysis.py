@@ -12,6 +12,7 @@ import pytest
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.policies.agent_policies import OracleAgent, RandomAgent
+from bitcomm.provenance import RECORDED
 from bitcomm.studies.analysis import (
     MessageSamples,
     analyze_samples,
@@ -107,5 +108,8 @@ def test_cli_writes_heatmaps_summary_and_json(tmp_path: Path, capsys: pytest.Cap
     assert len(figures["per_bit"]) == 4 and figures["capacity_bits"] == 4.0
     assert (out / "bits.png").stat().st_size > 1000
     assert (out / "bits.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    record = json.loads((out / "provenance.json").read_text())  # what made the figures: flags, task, code, machine
+    assert record["settings"]["samples"] == 5000 and record["settings"]["task"]["channel"]["bits"] == 4
+    assert set(RECORDED) <= set(record)
     summary = (out / "summary.md").read_text()
     assert "# Protocol analysis" in summary and "bits.png" in summary and summary.count("\n| ") >= 4 + 5

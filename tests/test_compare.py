@@ -20,7 +20,8 @@ import pytest
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
-from bitcomm.learn.run_folder import machine, machine_label
+from bitcomm.learn.run_folder import machine_label
+from bitcomm.provenance import RECORDED, machine
 from bitcomm.studies.compare import (
     CHOICES,
     CompareConfig,
@@ -105,6 +106,8 @@ def test_study_writes_every_file_well_formed(study: tuple[Path, str]) -> None:
 
     summary = strict_json(out / "summary.json")
     assert summary["study"]["episodes"] == 64 and summary["study"]["seeds"] == 2
+    record = strict_json(out / "provenance.json")  # what made the study's files: flags, code, machine, command
+    assert record["settings"]["episodes"] == 64 and set(RECORDED) <= set(record)
     oracle = summary["oracle"][""]["mean_episode_length"]
     assert 1 < oracle < 16
     assert [c["name"] for c in summary["configurations"]] == list(CHOICES)

@@ -37,7 +37,8 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import make_train_config
 from bitcomm.learn.learner import Learner
-from bitcomm.learn.run_folder import learner_state, machine, machine_label, restore_learner, run_machines
+from bitcomm.learn.run_folder import learner_state, machine_label, restore_learner, run_machines
+from bitcomm.provenance import machine
 from bitcomm.run_lock import LOCK, run_lock
 
 TASK = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16"]
@@ -123,6 +124,7 @@ def test_a_run_stopped_before_its_first_checkpoint_is_trained_again_not_resumed(
     rc, err = cli(capsys, "train", *QUICK, "--out", str(run), "--episodes", "16")
     assert rc == 0, err
     assert checkpoints(run)[-1][0] == 16
+    assert {tuple(s for s, _ in steps) for steps in tensorboard_scalars(run).values()} == {(16,)}  # the old run's gone
 
 
 def test_a_resume_of_a_run_that_lost_its_latest_json_says_how_to_restore_it(run: Path, capsys) -> None:
@@ -425,6 +427,104 @@ def test_each_start_and_resume_is_recorded_with_its_machine(run: Path, capsys) -
     starts = json.loads((run / "config.json").read_text())["starts"]
     assert [s["episodes"] for s in starts] == [0, 64] and starts[0]["git_commit"] == "b" * 40
     assert run_machines(run) == ["unrecorded", machine_label(machine())]
+
+
+def tensorboard_scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
+    """Each TensorBoard tag of a run folder with its (step, value) pairs, as TensorBoard shows them."""
+    from tensorboard.backend.event_processing.event_accumulator import SCALARS, EventAccumulator
+
+    events = EventAccumulator(str(run / "tb"), size_guidance={SCALARS: 0})
+    events.Reload()
+    return {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+def log_batches(out: Path, batches: range, resume_batches: int | None, value: float) -> None:
+    """What a trainer logs: one row per batch of 16 episodes, into a Logger opened fresh or on a resume."""
+    from bitcomm.learn.run_folder import Logger
+
+    logger = Logger(out, resume_batches)
+    for b in batches:
+        logger.log({"batch": b, "episodes": 16 * b, "wall_s": 0.1 * b, "charts/episode_length": value + b})
+    logger.close()
+
+
+def test_tensorboard_and_metrics_csv_show_each_batch_once_after_a_resume(tmp_path: Path) -> None:
+    """A `kill -9` leaves rows logged past the last checkpoint; the resume plays those batches again. TensorBoard
+    shows each step once, in order, with the resumed run's values, as metrics.csv does (header once)."""
+    log_batches(tmp_path, range(1, 5), None, 100.0)  # batches 3 and 4 logged, then killed before their checkpoint
+    log_batches(tmp_path, range(3, 7), 2, 200.0)  # resumed from batch 2's checkpoint
+    steps = [16 * b for b in range(1, 7)]
+    assert tensorboard_scalars(tmp_path) == {
+        "charts/episode_length": list(zip(steps, [101.0, 102.0, 203.0, 204.0, 205.0, 206.0], strict=True))
+    }
+    lines = (tmp_path / "metrics.csv").read_text().splitlines()
+    assert lines[0].startswith("batch,") and [line.split(",")[0] for line in lines[1:]] == [str(b) for b in range(1, 7)]
+
+    log_batches(tmp_path, range(1, 3), None, 300.0)  # a fresh run in the folder: the old run's events are gone too
+    assert tensorboard_scalars(tmp_path) == {"charts/episode_length": [(16, 301.0), (32, 302.0)]}
+
+
+def test_a_fresh_run_leaves_alone_a_tensorboard_folder_that_is_not_a_runs(tmp_path: Path, capsys) -> None:
+    """A fresh run removes the event files of the run it replaces: in a folder that is not a run's, one line."""
+    (tmp_path / "tb").mkdir()
+    (tmp_path / "tb" / "events.out.tfevents.1.host.1.0").write_bytes(b"mine")
+    refused(capsys, "train", *QUICK, "--episodes", "16", "--out", str(tmp_path), naming="tb")
+    assert (tmp_path / "tb" / "events.out.tfevents.1.host.1.0").read_bytes() == b"mine"
+
+
+def git(folder: Path, *args: str) -> str:
+    return subprocess.run(
+        ["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=folder, check=True, capture_output=True,
+        text=True,
+    ).stdout.strip()  # fmt: skip
+
+
+def package_in(folder: Path) -> Path:
+    package = folder / "bitcomm"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    return package
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+def test_the_commit_recorded_is_bitcomms_own_and_says_whether_its_source_was_changed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A checkout records its commit, and `git_dirty` once the package's source differs from it; an installed copy
+    records no commit, even inside another project's repository (a `.venv` in it), whose commit is not bitcomm's."""
+    from bitcomm import provenance
+
+    checkout = tmp_path / "checkout"
+    package = package_in(checkout / "src")
+    git(checkout, "init", "-q")
+    git(checkout, "add", ".")
+    git(checkout, "commit", "-qm", "bitcomm")
+    monkeypatch.setattr(provenance, "PACKAGE", package)
+    head = git(checkout, "rev-parse", "HEAD")
+    assert provenance.git_state() == (head, False)
+    (checkout / "notes.txt").write_text("outside the package\n")
+    assert provenance.git_state() == (head, False)
+    (package / "new_module.py").write_text("x = 1\n")
+    assert provenance.git_state() == (head, True)
+    record = provenance.record()
+    assert tuple(record) == provenance.RECORDED and (record["git_commit"], record["git_dirty"]) == (head, True)
+
+    project = tmp_path / "project"
+    project.mkdir()
+    git(project, "init", "-q")
+    (project / ".gitignore").write_text(".venv/\n")
+    git(project, "add", ".")
+    git(project, "commit", "-qm", "a project that installs bitcomm")
+    monkeypatch.setattr(provenance, "PACKAGE", package_in(project / ".venv" / "site-packages"))
+    assert provenance.git_state() == (None, None)
+    monkeypatch.setattr(provenance, "PACKAGE", package_in(tmp_path / "site-packages"))
+    assert provenance.git_state() == (None, None)
+
+
+def test_a_run_records_its_commit_whether_its_source_was_changed_and_its_libraries(run: Path) -> None:
+    config = json.loads((run / "config.json").read_text())
+    assert "git_commit" in config and config["git_dirty"] in (True, False, None)
+    assert set(config["versions"]) >= {"python", "bitcomm", "torch", "numpy", "gymnasium", "pettingzoo"}
 
 
 # ---------------------------------------------------------------------------------------------- leftovers

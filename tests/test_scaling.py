@@ -16,6 +16,7 @@ import pytest
 from bitcomm.cli import main
 from bitcomm.errors import ConfigError
 from bitcomm.policies.networks import ModelConfig
+from bitcomm.provenance import RECORDED
 from bitcomm.studies.scaling import ScalingConfig, ScalingRow, bits_for, learning_run, parse_sizes
 
 
@@ -36,6 +37,8 @@ def test_cli_small_sizes(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     argv = ["scaling", "--sizes", "4,6", "--recipe", "paper", "--repeats", "1", "--out", str(out)]
     assert main(argv) == 0
     assert "wrote" in capsys.readouterr().out
+    record = json.loads((out / "provenance.json").read_text())  # what made the tables: flags, code, machine
+    assert record["settings"]["sizes"] == "4,6" and set(RECORDED) <= set(record)
     with (out / "scaling.csv").open() as f:
         rows = {(int(r["size"]), r["messages"]): r for r in csv.DictReader(f)}
     assert sorted(rows) == [(4, "bitwise"), (4, "onehot"), (6, "bitwise"), (6, "onehot")]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,7 @@ from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.policies.source import PolicySource
+from bitcomm.provenance import RECORDED
 from bitcomm.studies.sweep import parse_param, run_sweep, with_param
 
 TINY = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
@@ -48,6 +50,9 @@ def test_cli_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert {r["policy"] for r in rows} == {"oracle", "random"}
     assert all(float(r["ci95_low"]) <= float(r["mean_episode_length"]) <= float(r["ci95_high"]) for r in rows)
     assert (out / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    record = json.loads((out / "provenance.json").read_text())  # what made the figure: flags, task, code, machine
+    assert record["settings"]["seed"] == 0 and record["settings"]["task"]["env"]["max_steps"] == 40
+    assert set(RECORDED) <= set(record)
     assert (out / "sweep.svg").read_text().startswith("<?xml")
     assert "wrote" in capsys.readouterr().out
     assert main(["sweep", "--param", "speed=1", "--out", str(out)]) == 2

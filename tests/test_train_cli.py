@@ -20,6 +20,7 @@ import torch
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
+from test_run_folder import tensorboard_scalars
 
 TINY = ["--size", "4", "--bits", "4", "--max-steps", "16", "--num-envs", "16"]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
@@ -110,6 +111,7 @@ def test_sync_runs_are_reproducible(tmp_path: Path) -> None:
     assert json.loads(latest.read_text())["episodes"] < BUDGET, "the run ended before it could be killed"
     bitcomm(*args, "--out", str(killed), "--resume")
     assert learning_columns(killed) == learning_columns(tmp_path / "a")
+    assert tensorboard_scalars(killed) == tensorboard_scalars(tmp_path / "a")  # each step once, as a run in one go
     wk = weights(killed)
     assert all(torch.equal(wa[k], wk[k]) for k in wa)
 

@@ -22,6 +22,7 @@ from bitcomm.learn.estimators import Advantages, policy_gradient_loss
 from bitcomm.learn.learner import Learner
 from bitcomm.learn.rollout import Collector
 from bitcomm.learn.run import train
+from bitcomm.provenance import RECORDED
 from bitcomm.studies.variance import (
     PARTS,
     Moments,
@@ -141,6 +142,9 @@ def test_cli_writes_csv_markdown_png_and_json(run_dir: Path, tmp_path: Path, cap
     assert (out / "variance.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "variance.svg").read_text().startswith("<?xml")
     assert "wrote" in capsys.readouterr().out
+    record = json.loads((out / "provenance.json").read_text())  # what made the figure: flags, task, code, machine
+    assert record["settings"]["seed"] == 0 and record["settings"]["task"]["env"]["size"] == 3
+    assert set(RECORDED) <= set(record)
 
     # one stage, measured on the task with a longer message delay, as JSON
     assert main(["variance", str(run_dir), *quick, "--stages", "latest", "--delay", "2", "--json"]) == 0

@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from bitcomm.commands.common import add_task_flags
+from bitcomm.commands.common import add_task_flags, write_provenance
 from bitcomm.commands.flags import (
     MAX_BATCH,
     MAX_SAMPLES,
@@ -62,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     heatmaps = save_heatmaps(bit_maps(samples, task), out / "bits.png", f"{source.label}: P(bit = 1) by observed goal")
     summary = out / "summary.md"
     summary.write_text(markdown_summary(report, heatmaps.name))
+    write_provenance(args, out, task)
     if args.json:
         json.dump(report.to_dict(), sys.stdout)
         sys.stdout.write("\n")
@@ -73,5 +74,5 @@ def run(args: argparse.Namespace) -> int:
     )
     for b in r.per_bit:
         print(f"  bit {b.bit}: I(row) {b.mi_row:.3f}  I(column) {b.mi_col:.3f}  I(cell) {b.mi_cell:.3f}")
-    print(f"wrote {heatmaps} and {summary}")
+    print(f"wrote {heatmaps}, {summary} and provenance.json")
     return 0

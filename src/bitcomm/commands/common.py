@@ -1,12 +1,15 @@
-"""Flags shared by every command that runs the task: the environment and the channel."""
+"""Flags shared by every command that runs the task (the environment and the channel), and the record of what
+made a study's files (`write_provenance`)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
+from bitcomm import provenance
 from bitcomm.commands.flags import integer, number
 from bitcomm.config import MAX_AGENTS, MAX_SIZE, MAX_STEPS, ChannelConfig, EnvConfig, TaskConfig
 
@@ -102,3 +105,19 @@ def print_result(result: EvalResult, as_json: bool, title: str) -> None:
         f"mean team return {result.mean_team_return:.3f}, "
         f"success rate {result.success_rate:.3f}"
     )
+
+
+def write_provenance(args: argparse.Namespace, out: Path | str, task: TaskConfig | None = None) -> Path:
+    """`<out>/provenance.json` beside a study's results: its flags as parsed (defaults included), and the code,
+    libraries, machine and command that made the files (`bitcomm.provenance.record`), so a figure can be traced
+    as a training run's config.json traces it. With `task` (the task played, a RUN's where one is read), the task
+    flags not typed are left out: their defaults are not what played."""
+    from bitcomm.policies.source import TASK_FLAGS, given_task_flags
+
+    typed = given_task_flags(args)
+    settings = {
+        k: v for k, v in vars(args).items() if not callable(v) and (task is None or k not in TASK_FLAGS or k in typed)
+    }
+    if task is not None:
+        settings["task"] = task.to_dict()
+    return provenance.write(Path(out), settings)

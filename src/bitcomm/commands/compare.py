@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bitcomm.commands import env_train
-from bitcomm.commands.common import add_task_flags, task_from_args
+from bitcomm.commands.common import add_task_flags, task_from_args, write_provenance
 from bitcomm.commands.env_flags import add_env_flags
 from bitcomm.commands.flags import (
     EVAL_EPISODES,
@@ -192,11 +192,12 @@ def run(args: argparse.Namespace) -> int:
     study, table_markdown, cfg = env_study(args) if args.env is not None else grid_study(args)
     progress = sys.stderr if args.json else sys.stdout
     summary = study(cfg, log=lambda line: print(line, file=progress, flush=True))
+    write_provenance(args, cfg.out)
     if args.json:
         json.dump(summary, sys.stdout)
         sys.stdout.write("\n")
         return 0
     print()
     print(table_markdown(summary), end="")
-    print(f"\nwrote {cfg.out}/curves.csv, curves.png, curves.svg, table.md and summary.json")
+    print(f"\nwrote {cfg.out}/curves.csv, curves.png, curves.svg, table.md, summary.json and provenance.json")
     return 0

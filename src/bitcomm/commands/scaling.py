@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from bitcomm.commands.common import write_provenance
 from bitcomm.commands.flags import (
     MAX_BATCH,
     MAX_REPEATS,
@@ -152,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
     curves = plot_curves(out, rows)
     if curves is not None:
         written.append(curves)
+    written.append(write_provenance(args, out))
     if args.json:
         json.dump([r.to_dict() for r in rows], sys.stdout)
         sys.stdout.write("\n")

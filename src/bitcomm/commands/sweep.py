@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from bitcomm.commands.common import add_task_flags
+from bitcomm.commands.common import add_task_flags, write_provenance
 from bitcomm.commands.flags import EVAL_EPISODES, SEED, add_threads_flag, check_eval, out_dir, use_threads
 from bitcomm.config import TaskConfig
 from bitcomm.errors import bad_value
@@ -66,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     csv_path = write_csv(points, out / "sweep.csv")
     png_path = plot_sweep(points, out / "sweep.png", f"{task.env.size}x{task.env.size} grid, K = {task.channel.bits}")
+    write_provenance(args, out, task)
     if args.json:
         json.dump([p.row() for p in points], sys.stdout)
         sys.stdout.write("\n")
@@ -74,5 +75,5 @@ def run(args: argparse.Namespace) -> int:
         lo, hi = p.result.ci95
         print(f"{p.policy:>10}  {p.param}={p.value:<6g} mean episode length {p.result.mean_episode_length:7.2f} "
               f"(95% CI {lo:.2f}-{hi:.2f}), success {p.result.success_rate:.3f}")  # fmt: skip
-    print(f"wrote {csv_path} and {png_path}")
+    print(f"wrote {csv_path}, {png_path} and provenance.json")
     return 0

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bitcomm.commands.common import add_task_flags
+from bitcomm.commands.common import add_task_flags, write_provenance
 from bitcomm.commands.flags import (
     MAX_BATCH,
     MAX_REPEATS,
@@ -127,10 +127,11 @@ def run(args: argparse.Namespace) -> int:
     md_path = out / "variance.md"
     md_path.write_text(markdown_table(rows, f"Gradient variance of the two estimators: {title}"))
     png_path = plot_variance(rows, out / "variance.png", title)
+    write_provenance(args, out, task)
     if args.json:
         json.dump([r.to_dict() for r in rows], sys.stdout)
         sys.stdout.write("\n")
         return 0
     print(markdown_table(rows), end="")
-    print(f"wrote {csv_path}, {md_path} and {png_path}")
+    print(f"wrote {csv_path}, {md_path}, {png_path} and provenance.json")
     return 0

@@ -49,7 +49,8 @@ class TrainConfig:
     estimator: str = "improved"
     """`standard` (paper eq. 7) or `improved` (paper eq. 8)."""
     mode: str = "sync"
-    """`sync`: batches of vectorized episodes; `a3c`: the paper's asynchronous workers."""
+    """`sync`: batches of vectorized episodes, the same run bit for bit for a seed; `a3c`: the paper's asynchronous
+    workers, whose updates race, so two runs differ."""
     backend: str = "local"
     """`local`: train in this process (`mode`); `ray`: rollout actors on a Ray cluster and one learner here
     (bitcomm.learn.ray_backend, docs/distributed.md). How a run is executed, not what it learns: a run resumes

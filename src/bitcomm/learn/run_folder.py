@@ -1,6 +1,7 @@
 """The run folder both trainers write, and what a run keeps between updates:
 
-    <out>/config.json          TrainConfig + seed, library versions, git commit, command line, and each
+    <out>/config.json          TrainConfig + seed, and what ran it (`bitcomm.provenance`): library versions, git
+                               commit and whether the source was dirty, command line; and each
                                start or resume with its machine (`write_config`)
     <out>/metrics.csv          one row per batch (flat namespaced keys), the source of every plot
     <out>/tb/                  the same rows for TensorBoard
@@ -20,10 +21,7 @@ import csv
 import functools
 import json
 import math
-import os
-import platform
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -35,6 +33,7 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 import torch
 
+from bitcomm import provenance
 from bitcomm.checkpoint import (
     CHECKPOINTS,
     LATEST,
@@ -65,27 +64,6 @@ LEARNING_COLUMNS = ("batch", "episodes", "agent_steps")
 
 
 # ---------------------------------------------------------------------------------------------- record
-def _git_commit() -> str | None:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, cwd=Path(__file__).parent
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() or None if out.returncode == 0 else None
-
-
-def _versions() -> dict[str, str]:
-    from bitcomm import __version__
-
-    return {
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "bitcomm": __version__,
-    }
-
-
 def oracle_level(cfg: TrainConfig, episodes: int = 2000) -> float | None:
     """The oracle's mean episode length on the task (None where the oracle cannot play it)."""
     return _oracle_level(cfg.task, cfg.seed, episodes)
@@ -136,17 +114,6 @@ class RunConfig(Protocol):
     def to_dict(self) -> dict[str, Any]: ...
 
 
-def machine() -> dict[str, Any]:
-    """What ran a run, so that its seconds can be set beside another run's: the CPU's model (Linux's
-    /proc/cpuinfo, else `platform.processor()`), its logical cores, the OS and the architecture."""
-    cpu = platform.processor() or "unknown"
-    with contextlib.suppress(OSError):
-        models = (line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                  if line.startswith("model name"))  # fmt: skip
-        cpu = next(models, cpu)
-    return {"cpu": cpu, "cores": os.cpu_count(), "system": platform.system(), "arch": platform.machine()}
-
-
 UNRECORDED = "unrecorded"
 """`machine_label` of a start whose machine was not kept (runs made before `starts` were)."""
 
@@ -169,15 +136,7 @@ def write_config(
     (a fresh run's) or those a resumed run keeps (`CARRIED`), and `starts`: one entry per start or resume
     (episodes played before it, time, commit, versions, threads, machine, command), so a run resumed on
     another machine or commit says which part of it ran where."""
-    start = {
-        "episodes": int(saved["episodes"]) if saved is not None else 0,
-        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "git_commit": _git_commit(),
-        "versions": _versions(),
-        "torch_threads": torch.get_num_threads(),
-        "machine": machine(),
-        "command": sys.argv,
-    }
+    start = {"episodes": int(saved["episodes"]) if saved is not None else 0, **provenance.record()}
     starts: list[dict[str, Any]] = []
     if saved is None:
         extra = measure(cfg) if measure is not None else {}
@@ -192,6 +151,7 @@ def write_config(
         "seed": cfg.seed,
         "versions": start["versions"],
         "git_commit": start["git_commit"],
+        "git_dirty": start["git_dirty"],
         "command": start["command"],
         **extra,
         "starts": [*starts, start],
@@ -249,27 +209,42 @@ def read_metrics(path: Path, upto_batch: int) -> list[dict[str, str]]:
         ) from None
 
 
+TB_EVENTS = "events.out.tfevents.*"
+"""The files TensorBoard's writer adds to `<out>/tb`, one per start or resume."""
+
+
 class Logger:
-    """One row per batch, to metrics.csv and TensorBoard alike (x axis: episodes)."""
+    """One row per batch, to metrics.csv and TensorBoard alike (x axis: episodes).
+
+    TensorBoard shows what metrics.csv holds. A resume drops the rows logged past its checkpoint (a `kill -9`
+    leaves up to `checkpoint_seconds` of them) from both: from metrics.csv by rewriting it, from TensorBoard by
+    the `purge_step` of its writer, which hides every earlier event at or past the first step it will log, so
+    no step shows twice or goes backwards. A fresh run removes the event files of the run it replaces, as it
+    does metrics.csv."""
 
     def __init__(self, out: Path, resume_batches: int | None) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
         self.path = out / "metrics.csv"
         self.columns: list[str] | None = None
-        if resume_batches is not None and self.path.is_file():
-            rows = read_metrics(self.path, resume_batches)
+        purge: int | None = None
+        if resume_batches is not None:
+            rows = read_metrics(self.path, resume_batches) if self.path.is_file() else []
             if rows:
                 self.columns = list(rows[0])
-            with self.path.open("w", newline="") as f:  # drop rows past the checkpoint
-                if self.columns:
-                    w = csv.DictWriter(f, self.columns)
-                    w.writeheader()
-                    w.writerows(rows)
-        elif self.path.exists():
-            self.path.unlink()
+            if self.path.is_file():
+                with self.path.open("w", newline="") as f:  # drop rows past the checkpoint
+                    if self.columns:
+                        w = csv.DictWriter(f, self.columns)
+                        w.writeheader()
+                        w.writerows(rows)
+            purge = int(rows[-1]["episodes"]) + 1 if rows else 0
+        else:
+            self.path.unlink(missing_ok=True)
+            for events in (out / "tb").glob(TB_EVENTS):
+                events.unlink()
         self.file = self.path.open("a", newline="")
-        self.tb = SummaryWriter(str(out / "tb"), purge_step=None)
+        self.tb = SummaryWriter(str(out / "tb"), purge_step=purge)
 
     def log(self, row: dict[str, float]) -> None:
         if self.columns is None:
@@ -510,8 +485,8 @@ def has_checkpoint(out: Path) -> bool:
     return (out / CHECKPOINTS / LATEST).is_file()
 
 
-RUN_FILES = ("config.json", "metrics.csv", "learning_curve.png", "learning_curve.svg")
-"""The files a run writes at its folder's top, which a fresh run overwrites."""
+RUN_FILES = ("config.json", "metrics.csv", "learning_curve.png", "learning_curve.svg", "tb")
+"""The files (and TensorBoard's folder) a run writes at its folder's top, which a fresh run overwrites."""
 
 
 def is_run_folder(out: Path) -> bool:
