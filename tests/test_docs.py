@@ -129,6 +129,22 @@ def test_dir_lists_every_public_name() -> None:
     import bitcomm
 
     assert set(bitcomm.__all__) <= set(dir(bitcomm))
+    assert not {"Any", "version", "PackageNotFoundError"} & set(dir(bitcomm))  # helpers of the module, not names
+
+
+def test_a_type_checker_sees_the_lazy_names_typed_and_refuses_a_name_bitcomm_lacks(tmp_path: Path) -> None:
+    """The package ships `py.typed`: a user's mypy must type `bitcomm.Controller.load` (not Any, as a module
+    `__getattr__` would make every name) and flag a typo such as `bitcomm.train`, which fails at run time."""
+    from mypy import api
+
+    src = Path(__file__).resolve().parents[1] / "src"
+    skipped = "".join(f"[mypy-{m}.*]\nfollow_imports = skip\n" for m in ("torch", "numpy", "gymnasium", "pettingzoo"))
+    (tmp_path / "mypy.ini").write_text(f"[mypy]\nmypy_path = {src}\nfollow_imports = silent\n{skipped}")
+    (tmp_path / "user.py").write_text("import bitcomm\n\nreveal_type(bitcomm.Controller.load)\nbitcomm.train\n")
+    out, _, _ = api.run(["--config-file", str(tmp_path / "mypy.ini"), "--cache-dir", str(tmp_path / "cache"),
+                         str(tmp_path / "user.py")])  # fmt: skip
+    assert "-> bitcomm.policies.controller.Controller" in out, out
+    assert 'Module has no attribute "train"' in out, out
 
 
 def python_blocks() -> Iterator[tuple[str, str]]:

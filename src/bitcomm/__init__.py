@@ -5,7 +5,8 @@ The public names load lazily, so `import bitcomm` (and the CLI) start without im
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from importlib import metadata as _metadata
+from typing import TYPE_CHECKING
 
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
@@ -15,10 +16,8 @@ if TYPE_CHECKING:
     from bitcomm.policies.evaluation import evaluate
 
 try:
-    from importlib.metadata import PackageNotFoundError, version
-
-    __version__ = version("bitcomm")
-except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = _metadata.version("bitcomm")
+except _metadata.PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0"
 
 __all__ = ["BitChannel", "ChannelConfig", "Controller", "EnvConfig", "TaskConfig", "evaluate", "__version__"]
@@ -29,15 +28,17 @@ _LAZY = {
     "evaluate": "bitcomm.policies.evaluation",
 }
 
+if not TYPE_CHECKING:  # a type checker reads the imports above, so a name bitcomm lacks is an error there too
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        import importlib
+    def __getattr__(name: str):
+        if name in _LAZY:
+            import importlib
 
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'bitcomm' has no attribute {name!r}")
+            return getattr(importlib.import_module(_LAZY[name]), name)
+        raise AttributeError(f"module 'bitcomm' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    """The lazy names too, so that `dir(bitcomm)` and a notebook's tab completion show them."""
-    return sorted({*globals(), *_LAZY})
+    """The public names, the lazy ones included, so that `dir(bitcomm)` and a notebook's tab completion show
+    them (and not this module's helpers)."""
+    return sorted({*__all__, *(n for n in globals() if not n.startswith("_") or n.startswith("__"))})
