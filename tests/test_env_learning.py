@@ -6,6 +6,7 @@ acting on it one step later: only the channel can carry it.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 from pathlib import Path
@@ -108,7 +109,7 @@ class SpacesEnv(ParallelEnv):
             self.state = lambda: np.full(4, 0.5, np.float32)  # type: ignore[method-assign]
         elif state == "dict":  # what PettingZoo's classic envs keep under that name: state() raises TypeError
             self.state = {"round": 0}  # type: ignore[assignment,method-assign]
-        self._obs, self._act = SPACES[obs], SPACES[act]
+        self._obs, self._act = copy.deepcopy(SPACES[obs]), SPACES[act]  # each copy draws from its own generator
         self.shown: list[dict[str, Any]] = []  # the observations of every reset and step
         self.received: list[dict[str, Any]] = []
 

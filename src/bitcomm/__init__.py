@@ -12,6 +12,7 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
 if TYPE_CHECKING:
     from bitcomm.envs.channel_wrapper import BitChannel
+    from bitcomm.learn.env_controller import EnvController
     from bitcomm.policies.controller import Controller
     from bitcomm.policies.evaluation import evaluate
 
@@ -20,11 +21,21 @@ try:
 except _metadata.PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0"
 
-__all__ = ["BitChannel", "ChannelConfig", "Controller", "EnvConfig", "TaskConfig", "evaluate", "__version__"]
+__all__ = [
+    "BitChannel",
+    "ChannelConfig",
+    "Controller",
+    "EnvConfig",
+    "EnvController",
+    "TaskConfig",
+    "evaluate",
+    "__version__",
+]
 
 _LAZY = {
     "BitChannel": "bitcomm.envs.channel_wrapper",
     "Controller": "bitcomm.policies.controller",
+    "EnvController": "bitcomm.learn.env_controller",
     "evaluate": "bitcomm.policies.evaluation",
 }
 

@@ -427,6 +427,19 @@ def load_grid_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tenso
         raise _bad(
             info["path"],
             f"trained on a wrapped env ({info['config']['env']}); this command reads runs of the grid task "
+            "(bitcomm eval and bitcomm render read both; from Python, bitcomm.EnvController acts with it)",
+        )
+    return weights, info
+
+
+def load_env_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
+    """`load_weights` for the readers of runs on a wrapped env (`load_env_policy`, and so `evaluate_env` and
+    `bitcomm.EnvController`): a grid run is one line saying what reads it, not a missing key of an env's config."""
+    weights, info = load_weights(path)
+    if not is_env_config(info["config"]):
+        raise _bad(
+            info["path"],
+            "trained on the grid task, not on a wrapped env; bitcomm.Controller acts with it "
             "(bitcomm eval and bitcomm render read both)",
         )
     return weights, info

@@ -26,7 +26,7 @@ processes; `WrappedEnvMaker` is the picklable maker both build their copies with
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, NamedTuple
@@ -89,6 +89,11 @@ class EnvLayout:
     def action_mask(self) -> np.ndarray:
         """(n, action_dim) bool: which actions (Discrete) or dimensions (Box) each agent has."""
         return np.arange(self.action_dim)[None, :] < np.asarray(self.action_sizes)[:, None]
+
+    def clip(self, actions: np.ndarray) -> np.ndarray:
+        """Box actions `(..., n, A)` clipped to each agent's bounds, as they reach the env (a Gaussian's sample is
+        not bounded); Discrete ones as they are."""
+        return actions if self.discrete else np.clip(actions, self.low, self.high)
 
     @classmethod
     def of(cls, env: Any) -> EnvLayout:
@@ -234,12 +239,7 @@ class VecEnv:
     def _write(self, out: VecObservation, b: int, obs: dict[str, Any]) -> None:
         """Row b of `out` from one copy's observation dict (the only per-agent loop: dicts to arrays)."""
         env, L = self.envs[b], self.layout
-        live = set(env.agents)
-        for i, a in enumerate(L.agents):
-            if a in live and a in obs:
-                out.obs[b, i, : L.obs_sizes[i]] = flat_observation(L.obs_spaces[i], obs[a]["observation"])
-                out.received[b, i] = obs[a]["messages"]
-                out.alive[b, i] = True
+        agent_rows(L, obs, set(env.agents), out.obs[b], out.received[b], out.alive[b])
         state = inner_state(env) if L.has_state else None
         out.state[b] = state if state is not None else out.obs[b].ravel()
 
@@ -259,12 +259,11 @@ class VecEnv:
         rewards = np.zeros((self.num_envs, L.n), np.float32)
         dropped = np.zeros((self.num_envs, L.n), bool)
         ended = np.zeros(self.num_envs, bool)
-        if not L.discrete:
-            actions = np.clip(actions, L.low, L.high)
+        actions = L.clip(actions)
         for b in np.flatnonzero(self.running):
             env = self.envs[b]
             acting = [(i, a) for i, a in enumerate(L.agents) if a in env.agents]
-            joint = {a: {"action": self._action(actions[b, i], i), "message": messages[b, i]} for i, a in acting}
+            joint = joint_action(L, actions[b], messages[b], acting)
             obs, rew, term, trunc, infos = env.step(joint)
             for i, a in acting:
                 rewards[b, i] = finite_reward(rew.get(a, 0.0), a)
@@ -286,8 +285,31 @@ class VecEnv:
     def __exit__(self, kind: type[BaseException] | None, err: BaseException | None, tb: TracebackType | None) -> None:
         self.close()
 
-    def _action(self, action: np.ndarray, i: int) -> Any:
-        return inner_action(self.layout.action_spaces[i], action)
+
+def agent_rows(
+    layout: EnvLayout,
+    observations: Mapping[Any, Any],
+    live: set[Any] | Sequence[Any],
+    obs: np.ndarray,
+    received: np.ndarray,
+    alive: np.ndarray,
+) -> None:
+    """One wrapped env's observation dict written into its rows: `obs (n, D)`, `received (n, slots, K)`, `alive
+    (n,)`, zeros left for the agents not in `live` (a `VecEnv` copy's, and `bitcomm.EnvController`'s for a loop of
+    its user's, so that both show the network the same inputs)."""
+    for i, a in enumerate(layout.agents):
+        if a in live and a in observations:
+            obs[i, : layout.obs_sizes[i]] = flat_observation(layout.obs_spaces[i], observations[a]["observation"])
+            received[i] = observations[a]["messages"]
+            alive[i] = True
+
+
+def joint_action(
+    layout: EnvLayout, actions: np.ndarray, messages: np.ndarray, acting: Sequence[tuple[int, Any]]
+) -> dict[Any, dict[str, Any]]:
+    """The dict `BitChannel.step` takes, for the `(row, agent)` pairs of `acting`, from one env's rows of the
+    learner's arrays: `actions (n,)` or `(n, A)` (clipped: `EnvLayout.clip`), `messages (n, K)`."""
+    return {a: {"action": inner_action(layout.action_spaces[i], actions[i]), "message": messages[i]} for i, a in acting}
 
 
 def finite_reward(value: Any, agent: Any) -> float:

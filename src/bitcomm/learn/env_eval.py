@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bitcomm.checkpoint import load_weights
+from bitcomm.checkpoint import load_env_weights
 from bitcomm.envs.factory import check_recorded_env
 from bitcomm.errors import ConfigError, one_line
 from bitcomm.learn.env_config import EnvTrainConfig
@@ -54,8 +54,9 @@ def chunk_seed(seed: int, chunk: int) -> np.random.SeedSequence:
 
 def load_env_policy(path: Path | str, typed_env: str | None = None) -> tuple[EnvTrainConfig, MlpPolicy]:
     """The config and policy of a wrapped-env checkpoint (a run folder: its latest). The env it records is built
-    only if trusted (`check_recorded_env`): `typed_env` is the spec the caller's user typed, if any."""
-    weights, info = load_weights(path)
+    only if trusted (`check_recorded_env`): `typed_env` is the spec the caller's user typed, if any. A grid run is
+    one line (`bitcomm.Controller` reads those)."""
+    weights, info = load_env_weights(path)
     cfg = config_of(info["path"], info["config"], EnvTrainConfig.from_dict)
     check_recorded_env(cfg.env, info["path"], typed_env)
     with make_vec(cfg, 1) as vec:  # one copy, to read the layout; closed, as an env may hold a window or files
