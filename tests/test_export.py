@@ -36,7 +36,8 @@ def make_checkpoint(folder: Path, task: TaskConfig = TINY, messages: str = "bitw
     """A run folder with one checkpoint of an untrained policy, written by the trainer's own writer."""
     from bitcomm.learn.config import make_train_config
 
-    cfg = make_train_config("reinforced", task, messages=messages, coords=coords)
+    coord_planes = {"coords": True, "encoder": "conv"} if coords else {}  # coordinate planes serve convolutions
+    cfg = make_train_config("reinforced", task, messages=messages, **coord_planes)
     torch.manual_seed(0)
     net = PolicyNet(task, cfg.model)
     with torch.no_grad():  # larger weights than at initialisation: logits far apart, as after training

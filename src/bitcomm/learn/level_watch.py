@@ -35,7 +35,7 @@ class LevelWatch:
         compared with counts a cut episode's steps up to the cut. (Against the oracle's full-length mean, 1.15x the
         oracle on 32x32 asked for 31.5 steps out of 32, 1.24x the oracle over the same cut episodes; from about
         40x40 it passed 32, so every cut rolling length met it.) Where even the cut oracle's multiple is at least the
-        length training cuts at, no rolling length can tell the protocol apart: the watch starts as it would at 0."""
+        length training cuts at, no rolling length can tell the protocol apart, and the first one meets it."""
         if multiple == 0:
             return cls(None)
         from bitcomm.learn.run_folder import training_oracle_level
@@ -43,8 +43,6 @@ class LevelWatch:
         oracle = training_oracle_level(cfg)
         if oracle is None:
             raise bad_value(flag, multiple, "needs the oracle, which cannot play this task")
-        if multiple * oracle >= cfg.training_task.env.max_steps:
-            return cls(None)
         return cls(multiple * oracle)
 
     @property
