@@ -117,7 +117,7 @@ def table(results: list[tuple[str, dict[str, Any], dict[str, Any]]], a: argparse
 def main() -> None:
     from bitcomm.learn.recipes import RECIPES
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--base", choices=tuple(RECIPES), default="paper")
     ap.add_argument("--target", choices=tuple(RECIPES), default="reinforced")
     ap.add_argument("--size", type=int, default=4)

@@ -64,7 +64,7 @@ def measure(
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=32, help="grid size (default %(default)s)")
     ap.add_argument("--bits", type=int, default=10, help="message bits K (default %(default)s)")
     ap.add_argument("--messages", default="onehot", help="message head, bitwise or onehot (default %(default)s)")

@@ -40,7 +40,7 @@ SETTINGS: dict[str, Callable[[], contextlib.AbstractContextManager[object]]] = {
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", help="a trained run folder or checkpoint (its batches are the late-training ones)")
     ap.add_argument("--rounds", type=int, default=3, help="updates of each batch per setting, taking turns")
     ap.add_argument("--batches", type=int, default=2, help="batches played by the checkpoint")

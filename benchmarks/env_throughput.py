@@ -43,7 +43,7 @@ def agent_steps_per_second(task: TaskConfig, num_envs: int, steps: int, seed: in
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 512, 4096], help="batch sizes B")
     parser.add_argument("--steps", type=int, default=300, help="timed steps per run (> max_steps: resets count)")
     parser.add_argument("--repeats", type=int, default=5, help="runs per batch size; the median is reported")

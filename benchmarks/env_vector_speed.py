@@ -71,7 +71,7 @@ def episodes_per_second(env: str, env_kwargs: dict[str, Any], workers: int, args
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--num-envs", type=int, default=32, help="copies of the env, episodes per batch")
     parser.add_argument("--batches", type=int, default=2, help="timed batches per run")
     parser.add_argument("--repeats", type=int, default=3, help="runs per setting; the median is reported")

@@ -120,7 +120,7 @@ def main() -> None:
     from bitcomm.policies.evaluation import evaluate
     from bitcomm.policies.reference import OraclePolicy
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_seed_flags(ap)
     ap.add_argument("--episodes", type=int, default=200_000, help="training budget per seed")
     ap.add_argument("--held-out-every", type=int, default=8192, help="0: no held-out set; the latest only")

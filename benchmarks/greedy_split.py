@@ -265,7 +265,7 @@ def main() -> None:
     from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
     from bitcomm.policies.controller import Controller
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", help="run folder or checkpoint of a grid run")
     ap.add_argument("--episodes", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=0)

@@ -130,7 +130,7 @@ def fmt(value: Any, spec: str) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=4)
     ap.add_argument("--bits", type=int, default=4)
     ap.add_argument("--recipe", default="reinforced")

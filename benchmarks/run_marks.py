@@ -186,7 +186,7 @@ def main() -> None:
     from bitcomm.errors import ConfigError, check_int
     from bitcomm.studies.compare import oracle_result
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", type=Path, help="run folders (each with config.json and metrics.csv)")
     ap.add_argument("--marks", type=parse_marks, default=MARKS, help="episode marks, comma-separated")
     ap.add_argument("--eval-episodes", type=int, default=1000, help="the oracle's episodes (default %(default)s)")

@@ -185,7 +185,7 @@ def main() -> None:
     from bitcomm.errors import ConfigError, check_int, check_number
     from bitcomm.learn.config import make_train_config
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_seed_flags(ap)
     ap.add_argument("--minutes", type=float, default=15.0, help="training wall-time budget per seed")
     ap.add_argument(

@@ -91,7 +91,7 @@ def measure(
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--modes", default="sync,a3c")
     ap.add_argument("--recipes", default="reinforced,paper")
     ap.add_argument("--batches", type=int, default=3, help="timed batches per worker (x10 for one-episode batches)")

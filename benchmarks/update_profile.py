@@ -56,7 +56,7 @@ def fresh_learner(cfg: TrainConfig, threads: int) -> tuple[Learner, torch.Genera
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--recipe", choices=tuple(RECIPES), default="reinforced")
     ap.add_argument("--updates", type=int, default=3, help="profiled updates (after one warm-up)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")

@@ -479,3 +479,18 @@ def test_one_seed_is_no_interval_in_the_demo_tables_and_a_refused_study_is_its_l
     out = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert out.stderr.strip().splitlines()[-1].endswith("invalid value '0': must be an integer in [1, 1000]")
+
+
+HELPED = sorted(p.name for p in (ROOT / "benchmarks").glob("*.py") if "ArgumentParser(" in p.read_text())
+
+
+@pytest.mark.parametrize("script", HELPED)
+def test_a_benchmark_s_help_says_what_it_measures_in_whole_sentences(script: str) -> None:
+    """`--help` (the README says to read it) opens with the docstring's first paragraph, not its first line,
+    which a wrapped docstring cuts mid-sentence ("... and does keeping the checkpoint")."""
+    out = subprocess.run(
+        [sys.executable, f"benchmarks/{script}", "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    description = out.stdout.split("\n\n")[1]  # after the usage lines
+    assert description.rstrip().endswith((".", "?", ")")), description

@@ -78,3 +78,25 @@ def test_threads_flag_sets_torchs_threads(tmp_path: Path, threads, capsys: pytes
     assert main([*argv, "--threads", str(threads.want), "--out", str(tmp_path / "sw"), "--json"]) == 0
     assert threads.seen == [threads.want]
     assert threads.zero_is_one_line("sweep", capsys)
+
+
+def test_a_learned_policy_reads_the_same_at_every_point_of_its_own_task_as_bitcomm_eval_with_the_seed(
+    tmp_path: Path,
+) -> None:
+    """Common random numbers hold for a sampling policy too: each point gets the sampling stream of `--seed`
+    (not the last point's stream, carried on), so a point equal to the run's own task reads as
+    `bitcomm eval RUN --seed S` does, wherever it stands in the sweep."""
+    import torch
+
+    from bitcomm.checkpoint import save_checkpoint
+    from bitcomm.learn.config import make_train_config
+    from bitcomm.policies.evaluation import evaluate_checkpoint
+    from bitcomm.policies.networks import PolicyNet
+
+    cfg = make_train_config("reinforced", TaskConfig(EnvConfig(size=4, max_steps=30), ChannelConfig(bits=4)))
+    torch.manual_seed(0)
+    run = tmp_path / "run"  # an untrained policy: it samples widely, so a stream carried on shows
+    save_checkpoint(run, cfg.to_dict(), {"policy": PolicyNet(cfg.task, cfg.model).state_dict()}, 16, 1, state={})
+    params = {"act_delay": (0,), "drop_prob": (0.0,), "flip_prob": (0.0,)}  # each the run's own task
+    points = run_sweep([PolicySource("run", str(run))], cfg.task, params, episodes=40, seed=3)
+    assert [p.result for p in points] == [evaluate_checkpoint(run, episodes=40, seed=3)] * 3

@@ -102,6 +102,13 @@ def resolve_task(args: argparse.Namespace, base: TaskConfig, label: str = "RUN",
     return task
 
 
+def torch_seed(seed: int | np.random.SeedSequence) -> int:
+    """A torch generator's seed for `seed`: an int as it is, a `SeedSequence` (a deployed agent's) drawn from."""
+    if isinstance(seed, np.random.SeedSequence):
+        return int(seed.generate_state(1, np.uint64)[0])
+    return int(seed)
+
+
 @lru_cache(maxsize=4)
 def load_controller(run: str) -> Any:
     """`bitcomm.Controller.load(run)`, once per path; one error line when it cannot be done."""
@@ -155,7 +162,12 @@ class PolicySource:
         return resolve_task(args, self.base_task(), label=f"{self.name.upper()} {self.label!r}", strict=learned)
 
     def build(self, task: TaskConfig, seed: int | np.random.SeedSequence | None = None) -> AgentPolicy:
-        """The policy, for `task`; `seed` drives a random policy's draws and an ONNX policy's sampling."""
+        """The policy, for `task`; `seed` drives a random policy's draws and a learned policy's sampling.
+
+        A learned RUN gets a sampling stream of its own from `seed` (the network is loaded once and shared):
+        with the loaded controller's one stream, each sweep point, or each deployed agent, would go on from
+        where the last one left it, so the same task read differently at each point of a sweep and `--seed`
+        changed only the episodes. An int seed samples as `bitcomm eval RUN --seed S` does."""
         if self.name == "oracle":
             return OracleAgent(task)
         if self.name == "random":
@@ -164,7 +176,10 @@ class PolicySource:
             from bitcomm.policies.onnx_policy import OnnxController
 
             return ControllerAgent(OnnxController.load(str(self.onnx), seed=0 if seed is None else seed), self.greedy)
-        return ControllerAgent(load_controller(self.run), greedy=self.greedy)
+        loaded = load_controller(self.run)
+        if seed is not None:
+            loaded = type(loaded)(loaded.policy, loaded.config, torch_seed(seed), loaded.info)
+        return ControllerAgent(loaded, greedy=self.greedy)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
