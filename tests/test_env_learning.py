@@ -550,6 +550,7 @@ def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: p
     out = str(tmp_path / "run")
     argv = ["train", "--env", SPEC, "--bits", "2", "--num-envs", "8", "--episodes", "8", "--hidden", "16"]
     assert main([*argv, "--out", out, "--quiet", "--eval-episodes", "0", "--threads", "1"]) == 0
+    assert f"; env {SPEC}; torch threads: 1" in capsys.readouterr().out  # as the grid's first line says them
     assert main(["eval", out, "--episodes", "20", "--drop-prob", "1", "--json"]) == 0
     assert '"mean_team_return"' in capsys.readouterr().out
     assert main(["eval", out, "--size", "5"]) == 2  # a grid flag on a wrapped-env run

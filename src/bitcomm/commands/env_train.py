@@ -130,8 +130,9 @@ def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1) -> None:
             check_memory("bits", cfg.channel.bits, need, what)
 
 
-def train(args: argparse.Namespace) -> int:
-    """Train on the env of `--env` (or resume such a run), on the torch threads the caller has set."""
+def train(args: argparse.Namespace, threads: int | None = None) -> int:
+    """Train on the env of `--env` (or resume such a run), on the torch threads the caller has set (`threads`, as
+    `use_threads` chose them; None: OMP_NUM_THREADS's)."""
     from bitcomm.learn.env_eval import evaluate_env
     from bitcomm.learn.env_run import train_env
     from bitcomm.learn.run_folder import check_start
@@ -150,7 +151,11 @@ def train(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / f"env-{module}-{cfg.estimator}-{cfg.messages}-s{cfg.seed}"
     check_start(out, args.resume)  # before a line is printed
     check_env([cfg])
-    print(f"run folder: {out}{' (resumed)' if args.resume else ''}; env {cfg.env}", flush=True)
+    print(
+        f"run folder: {out}{' (resumed)' if args.resume else ''}; env {cfg.env}; "
+        f"torch threads: {threads or 'OMP_NUM_THREADS'}",
+        flush=True,
+    )
     checkpoint = train_env(cfg, out, resume=args.resume, progress=not args.quiet)
     print(f"checkpoint: {checkpoint}")
     if args.eval_episodes:

@@ -133,8 +133,7 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.learn.run_folder import check_start
 
     if args.env is not None or (args.resume and env_train.is_env_run(args.out)):
-        use_threads(args)
-        return env_train.train(args)
+        return env_train.train(args, use_threads(args))
     env_train.check_env_only(args)
     structure = {**STRUCTURAL_DEFAULTS, **typed_structure(args)}
     out = args.out or Path("runs") / "{recipe}-{estimator}-{messages}-s{seed}".format(**structure)
