@@ -27,7 +27,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -36,6 +35,7 @@ from typing import Any
 import torch
 
 from bitcomm.errors import ConfigError
+from bitcomm.files import write_atomic
 
 FORMAT = "bitcomm-checkpoint"
 VERSION = 2
@@ -58,16 +58,44 @@ def _bad(path: Path | str, why: str) -> ConfigError:
 
 
 def _atomic(path: Path, write: Any) -> str:
-    """`write(tmp_path)` then rename over `path`; returns the sha256 of what was written."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
+    """`write(tmp_path)` then rename over `path` (`bitcomm.files.write_atomic`); returns the sha256 of what was
+    written."""
+    digest: list[str] = []
+
+    def write_and_hash(tmp: Path) -> None:
         write(tmp)
-        digest = file_sha256(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return digest
+        digest.append(file_sha256(tmp))
+
+    write_atomic(path, write_and_hash)
+    return digest[0]
+
+
+def _torch_save(obj: Any, path: Path) -> None:
+    """`torch.save`, but a write that fails raises the `OSError` that failed it: torch reports a full disk as a
+    RuntimeError naming a position in its zip writer, which says nothing of the disk."""
+    failed: list[OSError] = []
+
+    class Recorder:
+        def __init__(self, file: Any) -> None:
+            self.file = file
+
+        def write(self, data: Any) -> int:
+            try:
+                return int(self.file.write(data))
+            except OSError as err:
+                failed.append(err)
+                raise
+
+        def flush(self) -> None:
+            self.file.flush()
+
+    with path.open("wb") as file:
+        try:
+            torch.save(obj, Recorder(file))  # type: ignore[arg-type]
+        except RuntimeError:
+            if failed:
+                raise failed[0] from None
+            raise
 
 
 def file_sha256(path: Path) -> str:
@@ -110,15 +138,21 @@ def first_nonfinite(**groups: Any) -> str | None:
     return None
 
 
+def latest_name(run: Path | str) -> str | None:
+    """The file name of the checkpoint a run's `latest.json` names (what `--resume` goes on from), or None."""
+    try:
+        return str(read_latest(Path(run) / CHECKPOINTS)["checkpoint"])
+    except ConfigError:
+        return None
+
+
 def refuse_nonfinite(run: Path, episodes: int, **groups: Any) -> None:
     """Stop the run with one line, writing nothing, if a weight or optimizer value is NaN or inf."""
     name = first_nonfinite(**groups)
     if name is None:
         return
-    try:
-        kept = f"the latest checkpoint stays {read_latest(Path(run) / CHECKPOINTS)['checkpoint']}"
-    except ConfigError:
-        kept = "no checkpoint was written"
+    latest = latest_name(run)
+    kept = f"the latest checkpoint stays {latest}" if latest else "no checkpoint was written"
     raise Diverged(
         f"training diverged after {episodes} episodes: {name} holds NaN or inf; stopped without saving it, "
         f"{kept} (a smaller --lr may help)"
@@ -151,7 +185,7 @@ def save_checkpoint(
     }
     weights_path = folder / f"{stem}.safetensors"
     state_path = folder / f"{stem}.state.pt"
-    state_sha = _atomic(state_path, lambda p: torch.save({**state, "episodes": episodes, "batches": batches}, p))
+    state_sha = _atomic(state_path, lambda p: _torch_save({**state, "episodes": episodes, "batches": batches}, p))
     meta = {
         "format": FORMAT,
         "version": str(VERSION),
