@@ -312,7 +312,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_resume_goes_on(
     assert rc == 1 and len(lines) == 1 and "Traceback" not in err, err
     assert named in lines[0] and "No space left on device" in lines[0], lines[0]
     latest = json.loads((out / "checkpoints" / "latest.json").read_text())["checkpoint"]
-    assert f"the run stopped, --resume goes on from {latest} once there is room" in lines[0]
+    assert f"the run stopped; its latest checkpoint, {latest}, is whole: --resume" in lines[0]
     load_state(resolve(out))
     assert leftovers(out) == []
     monkeypatch.undo()

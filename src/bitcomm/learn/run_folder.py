@@ -604,8 +604,13 @@ def stops_in_one_line(out: Path) -> Iterator[None]:
         yield
     except OSError as err:
         latest = latest_name(out)
-        then = f"--resume goes on from {latest} once there is room" if latest else "no checkpoint was written"
-        raise OSError(err.errno, f"{os_error_line(err)}; the run stopped, {then}") from err
+        then = (
+            f"; its latest checkpoint, {latest}, is whole: --resume (or the same study again) goes on from it once "
+            "there is room"
+            if latest
+            else " before its first checkpoint"
+        )
+        raise OSError(err.errno, f"{os_error_line(err)}; the run stopped{then}") from err
 
 
 def save_learner(
