@@ -259,6 +259,10 @@ def read_latest(folder: Path, which: str = LATEST) -> dict[str, Any]:
     return dict(pointer)
 
 
+def _not_a_file(path: Path) -> str:
+    return "is a folder, not a checkpoint file" if path.is_dir() else "is missing"
+
+
 def resolve(path: Path | str) -> Path:
     """A run folder, its `checkpoints/` folder, a pointer in it (`latest.json`, `best.json`) or a `.safetensors`
     file -> the checkpoint file."""
@@ -266,7 +270,7 @@ def resolve(path: Path | str) -> Path:
     if p.name in POINTERS and p.is_file():
         named = p.parent / read_latest(p.parent, p.name)["checkpoint"]
         if not named.is_file():
-            raise _bad(p, f"names {named.name}, which is missing")
+            raise _bad(p, f"names {named.name}, which {_not_a_file(named)}")
         return named
     if p.is_dir():
         folder = _folder(p)
@@ -274,7 +278,7 @@ def resolve(path: Path | str) -> Path:
             raise _bad(path, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
         p = folder / read_latest(folder)["checkpoint"]
         if not p.is_file():
-            raise _bad(folder / LATEST, f"names {p.name}, which is missing")
+            raise _bad(folder / LATEST, f"names {p.name}, which {_not_a_file(p)}")
     if not p.is_file():
         raise _bad(path, "no such file or run folder")
     return p
@@ -483,7 +487,7 @@ def load_state(weights_file: Path) -> dict[str, Any]:
     """The resume state stored next to a checkpoint's weights, checked against the weights' record of it."""
     state_path = weights_file.with_name(weights_file.name.replace(".safetensors", ".state.pt"))
     if not state_path.is_file():
-        raise _bad(weights_file, f"its resume state {state_path.name} is missing")
+        raise _bad(weights_file, f"its resume state {state_path.name} {_not_a_file(state_path)}")
     meta = _metadata(weights_file)
     if _version(weights_file, meta) >= 2 and file_sha256(state_path) != meta.get("state_sha256"):
         raise _bad(state_path, "checksum mismatch: the file was changed or damaged after it was written")

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import functools
 import json
 import math
@@ -586,12 +587,16 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
             raise ConfigError(f"invalid checkpoint={info['path']!r}: its resume state lacks {key!r}")
     # refuse a damaged config.json or metrics.csv before anything is written
     recorded_starts(read_config_json(out), out)
-    if (out / "metrics.csv").is_file():
+    if (out / "metrics.csv").exists():  # a folder of that name too, before the log would fail on it
         read_metrics(out / "metrics.csv", int(state["batches"]))
     played = int(state["episodes"])
     if played >= cfg.episodes:  # `make train` run again: say why nothing trains
         print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train")
     return {**state, "weights": weights, "info": info}
+
+
+FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+"""A full disk, a quota used up, a file past the size limit a process was given (`ulimit -f`)."""
 
 
 @contextlib.contextmanager
@@ -604,12 +609,9 @@ def stops_in_one_line(out: Path) -> Iterator[None]:
         yield
     except OSError as err:
         latest = latest_name(out)
-        then = (
-            f"; its latest checkpoint, {latest}, is whole: --resume (or the same study again) goes on from it once "
-            "there is room"
-            if latest
-            else " before its first checkpoint"
-        )
+        once = "there is room" if err.errno in FULL else "the file can be written"
+        resumes = f"--resume (or the same study again) goes on from it once {once}"
+        then = f"; its latest checkpoint, {latest}, is whole: {resumes}" if latest else " before its first checkpoint"
         raise OSError(err.errno, f"{os_error_line(err)}; the run stopped{then}") from err
 
 
