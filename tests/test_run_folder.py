@@ -246,6 +246,37 @@ def test_the_lock_is_reentrant_in_one_process_and_released(tmp_path: Path) -> No
             pass
 
 
+def test_a_reader_of_a_run_still_training_reads_the_checkpoint_it_names_now(
+    run: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`bitcomm eval RUN` while RUN trains: the checkpoint latest.json named can be pruned before it is opened (the
+    run saved --keep-checkpoints newer ones meanwhile); the reader takes the one named now, not a damaged file."""
+    import bitcomm.checkpoint
+
+    real, calls = bitcomm.checkpoint.resolve, []
+
+    def resolve_then_prune(path: Path | str) -> Path:
+        file = real(path)
+        if not calls:  # the run moves on to 64 episodes and prunes 48 before this reader opens it
+            folder = file.parent
+            for suffix in ("safetensors", "state.pt"):
+                shutil.copy(folder / f"ckpt_000000048.{suffix}", folder / f"ckpt_000000064.{suffix}")
+            latest = json.loads((folder / "latest.json").read_text())
+            latest.update(checkpoint="ckpt_000000064.safetensors", state="ckpt_000000064.state.pt", episodes=64)
+            (folder / "latest.json").write_text(json.dumps(latest))
+            for suffix in ("safetensors", "state.pt"):
+                (folder / f"ckpt_000000048.{suffix}").unlink()
+        calls.append(file)
+        return file
+
+    monkeypatch.setattr(bitcomm.checkpoint, "resolve", resolve_then_prune)
+    _, info = load_weights(run)
+    assert [f.name for f in calls] == ["ckpt_000000048.safetensors", "ckpt_000000064.safetensors"]
+    assert info["path"].endswith("ckpt_000000064.safetensors")
+    with pytest.raises(ConfigError, match="no such file"):  # a file named outright is read or refused, not sought
+        load_weights(run / "checkpoints" / "ckpt_000000048.safetensors")
+
+
 # ---------------------------------------------------------------------------------------------- full disk
 def _full_on_call(n: int, call: Any) -> Any:
     """`call`, but its `n`-th call fails as a full disk does: an OSError naming no file (a buffered write's)."""

@@ -28,9 +28,9 @@ import hashlib
 import json
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
@@ -45,6 +45,7 @@ BEST = "best.json"
 POINTERS = (LATEST, BEST)
 """The files of a checkpoints folder that name one of its checkpoints."""
 CHECKPOINTS = "checkpoints"
+T = TypeVar("T")
 NAME = re.compile(r"ckpt_(\d{9})\.(safetensors|state\.pt)")
 """A checkpoint file's name; `latest.json` may name nothing else (so it cannot leave the folder)."""
 
@@ -410,9 +411,12 @@ def _version(file: Path, meta: dict[str, str]) -> int:
 def load_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
     """Weights by prefix (`policy`, `critic`) and metadata (config as a dict, episodes, batches),
     refused with one line if the file's checksum does not match what it holds."""
+    return _read_resolved(path, _load_weights_file)
+
+
+def _load_weights_file(file: Path) -> tuple[dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
     from safetensors import safe_open
 
-    file = resolve(path)
     try:
         with safe_open(str(file), framework="pt") as f:
             meta = f.metadata() or {}
@@ -446,10 +450,31 @@ def _config(file: Path, meta: dict[str, str]) -> dict[str, Any]:
 def read_config(path: Path | str) -> dict[str, Any]:
     """The config a checkpoint (or a run folder's latest) was trained with, from its metadata alone: what a
     command needs to choose how to load it, without reading (or checking) its tensors twice."""
-    file = resolve(path)
+    return _read_resolved(path, _config_of_file)
+
+
+def _config_of_file(file: Path) -> dict[str, Any]:
     meta = _metadata(file)
     _version(file, meta)
     return _config(file, meta)
+
+
+READS = 3
+"""How often a reader of a run still training resolves its latest checkpoint again (`_read_resolved`)."""
+
+
+def _read_resolved(path: Path | str, read: Callable[[Path], T]) -> T:
+    """`read(resolve(path))`; where `path` is a run (or a pointer) still training, whose checkpoint was pruned
+    between the two (`prune`: the run saved `keep` newer ones meanwhile), `read` the one it names now, rather than
+    call the file it named a damaged checkpoint."""
+    for _ in range(READS - 1):
+        file = resolve(path)
+        try:
+            return read(file)
+        except ConfigError:
+            if file.exists() or file == Path(path):
+                raise
+    return read(resolve(path))
 
 
 def is_env_config(d: dict[str, Any]) -> bool:
