@@ -157,6 +157,21 @@ def _file(name: str, content: bytes | None) -> Callable[[Path], str]:
     return tamper
 
 
+def _folder_instead(kind: str) -> Callable[[Path], str]:
+    """Replace a file of the run with a folder of its name (`kind`: the latest checkpoint's `safetensors` or
+    `state.pt`, or a file of the run folder)."""
+
+    def tamper(run: Path) -> str:
+        file = run / kind
+        if kind in ("safetensors", "state.pt"):
+            file = resolve(run).with_suffix("").with_suffix(f".{kind}")
+        file.unlink()
+        file.mkdir()
+        return "is a folder" if kind != "metrics.csv" else "metrics.csv"
+
+    return tamper
+
+
 def _flip(data: bytes) -> bytes:
     return data[:-1] + bytes([data[-1] ^ 0x01])
 
@@ -169,6 +184,7 @@ CASES: dict[str, Callable[[Path], str]] = {
     "latest: binary": _latest(b"\xff\xfe\x00garbage"),
     "latest: checkpoint missing": _latest('{"episodes": 32}'),
     "latest: names a missing file": _latest('{"checkpoint": "ckpt_000000999.safetensors", "episodes": 999}'),
+    "latest: names a folder": _folder_instead("safetensors"),
     "latest: names a state file": _latest('{"checkpoint": "ckpt_000000032.state.pt", "episodes": 32}'),
     "latest: episodes disagree": _latest('{"checkpoint": "ckpt_000000032.safetensors", "episodes": "32"}'),
     "latest: parent traversal": _latest('{"checkpoint": "../../x.safetensors"}'),
@@ -196,6 +212,7 @@ RESUME_CASES: dict[str, Callable[[Path], str]] = {
     "state: missing": _remove_state,
     "state: a flipped byte": _bytes(_flip, state=True),
     "state: truncated": _bytes(lambda d: d[:100], state=True),
+    "state: a folder": _folder_instead("state.pt"),
     "config.json: not JSON": _file("config.json", b'{"task": '),
     "config.json: a JSON list": _file("config.json", b"[1]"),
     "config.json: binary": _file("config.json", b"\x00\xff\xfe"),
@@ -204,6 +221,7 @@ RESUME_CASES: dict[str, Callable[[Path], str]] = {
     "config.json: starts of numbers": _file("config.json", b'{"starts": [1]}'),
     "metrics.csv: binary": _file("metrics.csv", b"\xff\xfe\x00\x01garbage\n\x00\n"),
     "metrics.csv: batch not a number": _file("metrics.csv", b"batch,episodes\nabc,16\n2,32\n"),
+    "metrics.csv: a folder": _folder_instead("metrics.csv"),
     "metrics.csv: no batch column": _file("metrics.csv", b"episodes,agent_steps\n16,100\n32,200\n"),
 }
 

@@ -3,8 +3,8 @@ imports only the layers below it (what its `__init__` docstring says it may impo
 
 Every import counts, at module level or inside a function, except those under `if TYPE_CHECKING:`
 (they never run). `bitcomm` (the root `__init__`, whose public names load lazily) and the modules beside
-it (config, errors, checkpoint, run_lock, plotting, stats) are the base layer; `bitcomm.cli` and `bitcomm.__main__`
-(`python -m bitcomm`) sit with the commands.
+it (config, errors, files, checkpoint, run_lock, plotting, stats) are the base layer; `bitcomm.cli` and
+`bitcomm.__main__` (`python -m bitcomm`) sit with the commands.
 """
 
 from __future__ import annotations

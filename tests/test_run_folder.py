@@ -5,6 +5,7 @@ retention (the last N and the best). Errors are one line with exit status 2 from
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -243,6 +244,132 @@ def test_the_lock_is_reentrant_in_one_process_and_released(tmp_path: Path) -> No
     with pytest.raises(ConfigError, match="lock file"):
         with run_lock(tmp_path / "missing"):
             pass
+
+
+def test_a_reader_of_a_run_still_training_reads_the_checkpoint_it_names_now(
+    run: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`bitcomm eval RUN` while RUN trains: the checkpoint latest.json named can be pruned before it is opened (the
+    run saved --keep-checkpoints newer ones meanwhile); the reader takes the one named now, not a damaged file."""
+    import bitcomm.checkpoint
+
+    real, calls = bitcomm.checkpoint.resolve, []
+
+    def resolve_then_prune(path: Path | str) -> Path:
+        file = real(path)
+        if not calls:  # the run moves on to 64 episodes and prunes 48 before this reader opens it
+            folder = file.parent
+            for suffix in ("safetensors", "state.pt"):
+                shutil.copy(folder / f"ckpt_000000048.{suffix}", folder / f"ckpt_000000064.{suffix}")
+            latest = json.loads((folder / "latest.json").read_text())
+            latest.update(checkpoint="ckpt_000000064.safetensors", state="ckpt_000000064.state.pt", episodes=64)
+            (folder / "latest.json").write_text(json.dumps(latest))
+            for suffix in ("safetensors", "state.pt"):
+                (folder / f"ckpt_000000048.{suffix}").unlink()
+        calls.append(file)
+        return file
+
+    monkeypatch.setattr(bitcomm.checkpoint, "resolve", resolve_then_prune)
+    _, info = load_weights(run)
+    assert [f.name for f in calls] == ["ckpt_000000048.safetensors", "ckpt_000000064.safetensors"]
+    assert info["path"].endswith("ckpt_000000064.safetensors")
+    with pytest.raises(ConfigError, match="no such file"):  # a file named outright is read or refused, not sought
+        load_weights(run / "checkpoints" / "ckpt_000000048.safetensors")
+
+
+# ---------------------------------------------------------------------------------------------- full disk
+def _full_on_call(n: int, call: Any) -> Any:
+    """`call`, but its `n`-th call fails as a full disk does: an OSError naming no file (a buffered write's)."""
+    calls = []
+
+    def fail(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        if len(calls) == n:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return call(*args, **kwargs)
+
+    return fail
+
+
+class _FlushFails:
+    """metrics.csv's file, whose third flush meets a full disk."""
+
+    def __init__(self, file: Any) -> None:
+        self.file, self.flush = file, _full_on_call(3, file.flush)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.file, name)
+
+
+def _fill_the_disk(what: str, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Make the third write of `what` fail as on a full disk; returns the file the error line names."""
+    import bitcomm.checkpoint
+    from bitcomm.learn.run_folder import Logger
+
+    if what == "checkpoint":  # the third checkpoint's resume state: its first file
+        monkeypatch.setattr(bitcomm.checkpoint, "_torch_save", _full_on_call(3, bitcomm.checkpoint._torch_save))
+        return "ckpt_000000048.state.pt"
+    if what == "metrics.csv":
+        init = Logger.__init__
+
+        def logger(self: Logger, *args: Any) -> None:
+            init(self, *args)
+            self.file = _FlushFails(self.file)
+
+        monkeypatch.setattr(Logger, "__init__", logger)
+        return "metrics.csv"
+    if what == "tensorboard":  # written on TensorBoard's own thread
+        from tensorboard.summary.writer.record_writer import RecordWriter
+
+        monkeypatch.setattr(RecordWriter, "write", _full_on_call(3, RecordWriter.write))
+        return "tb"
+    from matplotlib.figure import Figure
+
+    monkeypatch.setattr(Figure, "savefig", _full_on_call(3, Figure.savefig))
+    return "learning_curve.png"
+
+
+@pytest.mark.parametrize("what", ["checkpoint", "metrics.csv", "tensorboard", "learning curve"])
+def test_a_full_disk_stops_the_run_in_one_line_and_resume_goes_on(
+    what: str, tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Whatever file meets the full disk (on TensorBoard's thread too): one line naming it and what `--resume` goes
+    on from, exit status 1; the latest checkpoint whole, no temporary file left; and once there is room the resume
+    goes on, each batch logged once."""
+    out = tmp_path / "run"
+    named = _fill_the_disk(what, monkeypatch)
+    rc, err = cli(capsys, "train", *QUICK, "--episodes", "160", "--out", str(out))
+    lines = err.strip().splitlines()
+    assert rc == 1 and len(lines) == 1 and "Traceback" not in err, err
+    assert named in lines[0] and "No space left on device" in lines[0], lines[0]
+    latest = json.loads((out / "checkpoints" / "latest.json").read_text())["checkpoint"]
+    assert f"the run stopped; its latest checkpoint, {latest}, is whole: --resume" in lines[0]
+    load_state(resolve(out))
+    assert leftovers(out) == []
+    monkeypatch.undo()
+    rc, err = cli(capsys, "train", *QUICK, "--episodes", "160", "--out", str(out), "--resume")
+    assert rc == 0, err
+    rows = (out / "metrics.csv").read_text().splitlines()[1:]
+    assert [row.split(",")[0] for row in rows] == [str(b) for b in range(1, 11)]
+
+
+def test_torch_saves_full_disk_is_the_os_error_not_a_zip_writers_position(tmp_path: Path) -> None:
+    """torch reports a write that failed as a RuntimeError about its zip writer; a checkpoint's state is written
+    so that it is the OSError itself (here EFBIG: the file size limit a process may be given, `ulimit -f`)."""
+    import resource
+
+    from bitcomm.checkpoint import _torch_save
+
+    limits = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails instead of killing
+    resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, limits[1]))
+    try:
+        with pytest.raises(OSError) as caught:
+            _torch_save({"w": torch.zeros(100_000)}, tmp_path / "state.pt")
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limits)
+        signal.signal(signal.SIGXFSZ, previous)
+    assert caught.value.errno == errno.EFBIG
 
 
 # ---------------------------------------------------------------------------------------------- NaN

@@ -294,6 +294,28 @@ def test_bad_input_is_one_line(argv: list[str], tmp_path: Path, capsys: pytest.C
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(
+    ("argv", "dest", "typed"),
+    [
+        (["train"], "out", "--out=~/runs/a"),
+        (["compare"], "out", "--out=~/study"),
+        (["render", "--policy", "oracle"], "out", "--out=~/episode.gif"),
+        (["export", "run"], "onnx", "--onnx=~/policy.onnx"),
+    ],
+)
+def test_a_tilde_in_an_output_flag_is_the_home_folder(
+    argv: list[str], dest: str, typed: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The shell leaves `--out=~/runs/a` as typed; a folder named `~` in the working directory is not what was
+    meant (and `rm -rf ~` is how one would remove it)."""
+    from bitcomm.cli import build_parser
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    args = build_parser().parse_args([*argv, typed])
+    assert getattr(args, dest) == tmp_path / "home" / typed.partition("~/")[2]
+
+
 def test_a_recipe_s_coordinate_planes_stand_down_with_an_encoder_that_has_no_convolutions() -> None:
     """`supervised` adds coordinate planes to its convolutions; with `--encoder marginals` they would do nothing,
     so the run records them off rather than a setting it does not use."""

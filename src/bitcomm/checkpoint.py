@@ -27,15 +27,15 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
 from bitcomm.errors import ConfigError
+from bitcomm.files import write_atomic
 
 FORMAT = "bitcomm-checkpoint"
 VERSION = 2
@@ -45,6 +45,7 @@ BEST = "best.json"
 POINTERS = (LATEST, BEST)
 """The files of a checkpoints folder that name one of its checkpoints."""
 CHECKPOINTS = "checkpoints"
+T = TypeVar("T")
 NAME = re.compile(r"ckpt_(\d{9})\.(safetensors|state\.pt)")
 """A checkpoint file's name; `latest.json` may name nothing else (so it cannot leave the folder)."""
 
@@ -58,16 +59,44 @@ def _bad(path: Path | str, why: str) -> ConfigError:
 
 
 def _atomic(path: Path, write: Any) -> str:
-    """`write(tmp_path)` then rename over `path`; returns the sha256 of what was written."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
+    """`write(tmp_path)` then rename over `path` (`bitcomm.files.write_atomic`); returns the sha256 of what was
+    written."""
+    digest: list[str] = []
+
+    def write_and_hash(tmp: Path) -> None:
         write(tmp)
-        digest = file_sha256(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return digest
+        digest.append(file_sha256(tmp))
+
+    write_atomic(path, write_and_hash)
+    return digest[0]
+
+
+def _torch_save(obj: Any, path: Path) -> None:
+    """`torch.save`, but a write that fails raises the `OSError` that failed it: torch reports a full disk as a
+    RuntimeError naming a position in its zip writer, which says nothing of the disk."""
+    failed: list[OSError] = []
+
+    class Recorder:
+        def __init__(self, file: Any) -> None:
+            self.file = file
+
+        def write(self, data: Any) -> int:
+            try:
+                return int(self.file.write(data))
+            except OSError as err:
+                failed.append(err)
+                raise
+
+        def flush(self) -> None:
+            self.file.flush()
+
+    with path.open("wb") as file:
+        try:
+            torch.save(obj, Recorder(file))  # type: ignore[arg-type]
+        except RuntimeError:
+            if failed:
+                raise failed[0] from None
+            raise
 
 
 def file_sha256(path: Path) -> str:
@@ -110,15 +139,21 @@ def first_nonfinite(**groups: Any) -> str | None:
     return None
 
 
+def latest_name(run: Path | str) -> str | None:
+    """The file name of the checkpoint a run's `latest.json` names (what `--resume` goes on from), or None."""
+    try:
+        return str(read_latest(Path(run) / CHECKPOINTS)["checkpoint"])
+    except ConfigError:
+        return None
+
+
 def refuse_nonfinite(run: Path, episodes: int, **groups: Any) -> None:
     """Stop the run with one line, writing nothing, if a weight or optimizer value is NaN or inf."""
     name = first_nonfinite(**groups)
     if name is None:
         return
-    try:
-        kept = f"the latest checkpoint stays {read_latest(Path(run) / CHECKPOINTS)['checkpoint']}"
-    except ConfigError:
-        kept = "no checkpoint was written"
+    latest = latest_name(run)
+    kept = f"the latest checkpoint stays {latest}" if latest else "no checkpoint was written"
     raise Diverged(
         f"training diverged after {episodes} episodes: {name} holds NaN or inf; stopped without saving it, "
         f"{kept} (a smaller --lr may help)"
@@ -151,7 +186,7 @@ def save_checkpoint(
     }
     weights_path = folder / f"{stem}.safetensors"
     state_path = folder / f"{stem}.state.pt"
-    state_sha = _atomic(state_path, lambda p: torch.save({**state, "episodes": episodes, "batches": batches}, p))
+    state_sha = _atomic(state_path, lambda p: _torch_save({**state, "episodes": episodes, "batches": batches}, p))
     meta = {
         "format": FORMAT,
         "version": str(VERSION),
@@ -225,6 +260,10 @@ def read_latest(folder: Path, which: str = LATEST) -> dict[str, Any]:
     return dict(pointer)
 
 
+def _not_a_file(path: Path) -> str:
+    return "is a folder, not a checkpoint file" if path.is_dir() else "is missing"
+
+
 def resolve(path: Path | str) -> Path:
     """A run folder, its `checkpoints/` folder, a pointer in it (`latest.json`, `best.json`) or a `.safetensors`
     file -> the checkpoint file."""
@@ -232,7 +271,7 @@ def resolve(path: Path | str) -> Path:
     if p.name in POINTERS and p.is_file():
         named = p.parent / read_latest(p.parent, p.name)["checkpoint"]
         if not named.is_file():
-            raise _bad(p, f"names {named.name}, which is missing")
+            raise _bad(p, f"names {named.name}, which {_not_a_file(named)}")
         return named
     if p.is_dir():
         folder = _folder(p)
@@ -240,7 +279,7 @@ def resolve(path: Path | str) -> Path:
             raise _bad(path, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
         p = folder / read_latest(folder)["checkpoint"]
         if not p.is_file():
-            raise _bad(folder / LATEST, f"names {p.name}, which is missing")
+            raise _bad(folder / LATEST, f"names {p.name}, which {_not_a_file(p)}")
     if not p.is_file():
         raise _bad(path, "no such file or run folder")
     return p
@@ -372,9 +411,12 @@ def _version(file: Path, meta: dict[str, str]) -> int:
 def load_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
     """Weights by prefix (`policy`, `critic`) and metadata (config as a dict, episodes, batches),
     refused with one line if the file's checksum does not match what it holds."""
+    return _read_resolved(path, _load_weights_file)
+
+
+def _load_weights_file(file: Path) -> tuple[dict[str, dict[str, torch.Tensor]], dict[str, Any]]:
     from safetensors import safe_open
 
-    file = resolve(path)
     try:
         with safe_open(str(file), framework="pt") as f:
             meta = f.metadata() or {}
@@ -408,10 +450,31 @@ def _config(file: Path, meta: dict[str, str]) -> dict[str, Any]:
 def read_config(path: Path | str) -> dict[str, Any]:
     """The config a checkpoint (or a run folder's latest) was trained with, from its metadata alone: what a
     command needs to choose how to load it, without reading (or checking) its tensors twice."""
-    file = resolve(path)
+    return _read_resolved(path, _config_of_file)
+
+
+def _config_of_file(file: Path) -> dict[str, Any]:
     meta = _metadata(file)
     _version(file, meta)
     return _config(file, meta)
+
+
+READS = 3
+"""How often a reader of a run still training resolves its latest checkpoint again (`_read_resolved`)."""
+
+
+def _read_resolved(path: Path | str, read: Callable[[Path], T]) -> T:
+    """`read(resolve(path))`; where `path` is a run (or a pointer) still training, whose checkpoint was pruned
+    between the two (`prune`: the run saved `keep` newer ones meanwhile), `read` the one it names now, rather than
+    call the file it named a damaged checkpoint."""
+    for _ in range(READS - 1):
+        file = resolve(path)
+        try:
+            return read(file)
+        except ConfigError:
+            if file.exists() or file == Path(path):
+                raise
+    return read(resolve(path))
 
 
 def is_env_config(d: dict[str, Any]) -> bool:
@@ -449,7 +512,7 @@ def load_state(weights_file: Path) -> dict[str, Any]:
     """The resume state stored next to a checkpoint's weights, checked against the weights' record of it."""
     state_path = weights_file.with_name(weights_file.name.replace(".safetensors", ".state.pt"))
     if not state_path.is_file():
-        raise _bad(weights_file, f"its resume state {state_path.name} is missing")
+        raise _bad(weights_file, f"its resume state {state_path.name} {_not_a_file(state_path)}")
     meta = _metadata(weights_file)
     if _version(weights_file, meta) >= 2 and file_sha256(state_path) != meta.get("state_sha256"):
         raise _bad(state_path, "checksum mismatch: the file was changed or damaged after it was written")

@@ -1,6 +1,7 @@
 """The `bitcomm` command line. Each subcommand lives in `bitcomm.commands.<name>` and exposes
 `add_parser(subparsers)` and `run(args) -> int` and is found by name, so adding a command touches
-no shared list; bad input ends with one line and exit status 2."""
+no shared list; bad input ends with one line and exit status 2, a file the system would not write or read (a
+full disk, a read-only folder) with one line and exit status 1."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from typing import Any, NoReturn
 
 import bitcomm.commands
 from bitcomm.commands.flags import HelpFormatter
-from bitcomm.errors import ConfigError
+from bitcomm.errors import ConfigError, os_error_line
 
 
 def command_names() -> list[str]:
@@ -64,6 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         print(f"bitcomm {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # the machine, not the input: a full disk, a quota, a folder made read-only meanwhile
+        print(f"bitcomm {args.command}: error: {os_error_line(err)}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt as err:
         print(f"bitcomm {args.command}: interrupted", file=sys.stderr)
         return int(getattr(err, "exit_code", 130))  # a run stopped on SIGTERM (`Stopped`) ends as killed by it

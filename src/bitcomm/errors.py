@@ -26,6 +26,13 @@ def one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {' '.join(str(err).split())}"
 
 
+def os_error_line(err: OSError) -> str:
+    """What the system refused, on one line: the file, if the error names one, then why (`[Errno 28] No space
+    left on device: 'x'` without the number, which tells a user nothing the words do not)."""
+    why = err.strerror or " ".join(str(err).split()) or type(err).__name__
+    return f"{str(err.filename)!r}: {why}" if err.filename is not None else why
+
+
 def check_int(name: str, value: object, least: int) -> None:
     """One error line unless `value` is an integer >= `least` (a bool or 2.5 is not; `name` as a flag)."""
     if not is_integer(value) or value < least:  # type: ignore[operator]

@@ -6,11 +6,13 @@ no date and fixed element ids, so drawing the same data twice writes the same fi
 
 from __future__ import annotations
 
-import os
+import functools
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from bitcomm.files import write_atomic
 
 FORMATS = ("png", "svg")
 
@@ -32,9 +34,7 @@ def save_figure(fig: Any, path: str | Path, formats: tuple[str, ...] = FORMATS, 
     with matplotlib.rc_context({"svg.hashsalt": "bitcomm"}):
         for fmt in formats:
             target = path.with_suffix(f".{fmt}")
-            tmp = target.with_name(f".{target.stem}.tmp{os.getpid()}.{fmt}")
             metadata = {"Date": None} if fmt == "svg" else None
-            fig.savefig(tmp, dpi=dpi, format=fmt, metadata=metadata)
-            tmp.replace(target)
+            write_atomic(target, functools.partial(fig.savefig, dpi=dpi, format=fmt, metadata=metadata))
             written.append(target)
     return written

@@ -22,6 +22,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from bitcomm.files import write_text_atomic
+
 PACKAGE = Path(__file__).resolve().parent
 """The folder this bitcomm's code runs from."""
 PROVENANCE = "provenance.json"
@@ -99,7 +101,5 @@ def record() -> dict[str, Any]:
 def write(out: Path, settings: dict[str, Any]) -> Path:
     """`<out>/provenance.json`: a study's `settings` (its flags, as parsed) with `record()`, written atomically."""
     path = Path(out) / PROVENANCE
-    tmp = path.with_name(f".{PROVENANCE}.tmp")
-    tmp.write_text(json.dumps({"settings": settings, **record()}, indent=2, default=str) + "\n")
-    tmp.replace(path)
+    write_text_atomic(path, json.dumps({"settings": settings, **record()}, indent=2, default=str) + "\n")
     return path

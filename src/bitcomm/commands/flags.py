@@ -110,17 +110,25 @@ def folder_problem(path: Path) -> str | None:
     return None
 
 
+def _user_path(text: str) -> Path:
+    """`text` as a path, a leading `~` the home folder: the shell leaves `--out=~/runs` as typed (it expands a
+    `~` only at the start of a word), and a folder named `~` made in the working directory is one a later
+    `rm -rf ~` would mistake for home."""
+    return Path(text).expanduser()
+
+
 def out_dir(text: str) -> Path:
     """An argparse type: a folder to write into (made if missing), refused if it is a file or read-only."""
-    problem = "must not be empty" if not text.strip() else folder_problem(Path(text))
+    path = _user_path(text)
+    problem = "must not be empty" if not text.strip() else folder_problem(path)
     if problem:
         raise argparse.ArgumentTypeError(f"invalid value {text!r}: {problem}")
-    return Path(text)
+    return path
 
 
 def out_file(text: str) -> Path:
     """An argparse type: a file to write (its folder made if missing), refused if a folder or read-only."""
-    path = Path(text)
+    path = _user_path(text)
     problem = None
     if not text.strip():
         problem = "must not be empty"

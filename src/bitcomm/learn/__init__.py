@@ -8,7 +8,7 @@ write (`run_folder.py`). The same core on any channel-wrapped PettingZoo env: `e
 `env_controller.py`: `bitcomm.EnvController`, such a run's policy acting in a loop of its user's (here, not
 beside `Controller` in `policies`, as it reads the run through `env_eval.load_env_policy`).
 
-May import: `bitcomm.config`, `bitcomm.errors`, `bitcomm.checkpoint`, `bitcomm.run_lock`,
+May import: `bitcomm.config`, `bitcomm.errors`, `bitcomm.files`, `bitcomm.checkpoint`, `bitcomm.run_lock`,
 `bitcomm.plotting`, `bitcomm.stats`, `bitcomm.channel`, `bitcomm.envs`, `bitcomm.policies`. Importing the package
 imports nothing (no torch): the CLI reads `options.py` to build its flags.
 """

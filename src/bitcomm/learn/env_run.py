@@ -35,6 +35,7 @@ from bitcomm.learn.run_folder import (
     read_json_object,
     restore_learner,
     save_learner,
+    stops_in_one_line,
     train_batches,
     write_config,
 )
@@ -55,7 +56,7 @@ def train_env(cfg: EnvTrainConfig, out: Path, resume: bool = False, progress: bo
             raise ConfigError(
                 f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})"
             ) from None
-        with run_lock(out), flush_denormals():
+        with run_lock(out), flush_denormals(), stops_in_one_line(out):
             return _train(cfg, vec, out, resume, progress)
 
 

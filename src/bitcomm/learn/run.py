@@ -33,6 +33,7 @@ from bitcomm.learn.run_folder import (
     prepare,
     restore_learner,
     save_learner,
+    stops_in_one_line,
     train_batches,
     write_config,
 )
@@ -56,7 +57,7 @@ def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = Tr
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ConfigError(f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})") from None
-    with run_lock(out), flush_denormals():
+    with run_lock(out), flush_denormals(), stops_in_one_line(out):
         if cfg.backend == "ray":
             from bitcomm.learn.ray_backend import train_ray
 

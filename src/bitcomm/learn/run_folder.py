@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import functools
 import json
 import math
@@ -39,6 +40,7 @@ from bitcomm.checkpoint import (
     LATEST,
     clean,
     complete,
+    latest_name,
     load_state,
     load_weights,
     read_config,
@@ -47,7 +49,8 @@ from bitcomm.checkpoint import (
     save_checkpoint,
 )
 from bitcomm.config import TaskConfig
-from bitcomm.errors import ConfigError, one_line
+from bitcomm.errors import ConfigError, one_line, os_error_line
+from bitcomm.files import naming, write_atomic, write_text_atomic
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
 from bitcomm.plotting import save_figure
@@ -156,9 +159,7 @@ def write_config(
         **extra,
         "starts": [*starts, start],
     }
-    tmp = out / ".config.json.tmp"
-    tmp.write_text(json.dumps(record, indent=2) + "\n")
-    tmp.replace(out / "config.json")
+    write_text_atomic(out / "config.json", json.dumps(record, indent=2) + "\n")
 
 
 def recorded_starts(record: dict[str, Any], out: Path) -> list[dict[str, Any]]:
@@ -211,6 +212,8 @@ def read_metrics(path: Path, upto_batch: int) -> list[dict[str, str]]:
 
 TB_EVENTS = "events.out.tfevents.*"
 """The files TensorBoard's writer adds to `<out>/tb`, one per start or resume."""
+EVENTS_THREAD = "_AsyncWriterThread"
+"""The class of the thread on which TensorBoard's writer writes them (`tensorboard.summary.writer`)."""
 
 
 class Logger:
@@ -232,19 +235,34 @@ class Logger:
             rows = read_metrics(self.path, resume_batches) if self.path.is_file() else []
             if rows:
                 self.columns = list(rows[0])
-            if self.path.is_file():
-                with self.path.open("w", newline="") as f:  # drop rows past the checkpoint
-                    if self.columns:
-                        w = csv.DictWriter(f, self.columns)
-                        w.writeheader()
-                        w.writerows(rows)
+            if self.path.is_file():  # drop rows past the checkpoint
+                self._rewrite(rows)
             purge = int(rows[-1]["episodes"]) + 1 if rows else 0
         else:
             self.path.unlink(missing_ok=True)
             for events in (out / "tb").glob(TB_EVENTS):
                 events.unlink()
         self.file = self.path.open("a", newline="")
-        self.tb = SummaryWriter(str(out / "tb"), purge_step=purge)
+        self.events = out / "tb"
+        self.events_error: OSError | None = None
+        self.hook = threading.excepthook
+        threading.excepthook = self._thread_failed
+        try:
+            with naming(self.events):
+                self.tb = SummaryWriter(str(self.events), purge_step=purge)
+        except BaseException:
+            threading.excepthook = self.hook
+            self.file.close()
+            raise
+
+    def _thread_failed(self, args: Any) -> None:
+        """TensorBoard writes its events on a thread of its own, whose failure to write (a full disk) would print
+        that thread's traceback; its writer raises the error again in the run's thread at the next event, and
+        `close` at the end, where it ends the run in one line (`stops_in_one_line`)."""
+        if type(args.thread).__name__ == EVENTS_THREAD and isinstance(args.exc_value, OSError):
+            self.events_error = args.exc_value
+            return
+        self.hook(args)
 
     def log(self, row: dict[str, float]) -> None:
         if self.columns is None:
@@ -255,21 +273,43 @@ class Logger:
             self.file.close()
             with self.path.open(newline="") as f:
                 rows = list(csv.DictReader(f))
-            with self.path.open("w", newline="") as f:
-                w = csv.DictWriter(f, self.columns)
-                w.writeheader()
-                w.writerows(rows)
+            self._rewrite(rows)
             self.file = self.path.open("a", newline="")
-        csv.DictWriter(self.file, self.columns, extrasaction="ignore").writerow(row)
-        self.file.flush()
+        with naming(self.path):
+            csv.DictWriter(self.file, self.columns, extrasaction="ignore").writerow(row)
+            self.file.flush()
         step = int(row["episodes"])
-        for key, value in row.items():
-            if "/" in key:
-                self.tb.add_scalar(key, value, step)
+        with naming(self.events):
+            for key, value in row.items():
+                if "/" in key:
+                    self.tb.add_scalar(key, value, step)
+
+    def _rewrite(self, rows: list[dict[str, str]]) -> None:
+        """metrics.csv as `rows` under `self.columns`, replaced whole: a kill or a full disk midway leaves the rows
+        it had, never a file cut short (which a resume would refuse)."""
+
+        def write(tmp: Path) -> None:
+            with tmp.open("w", newline="") as f:
+                if self.columns:
+                    w = csv.DictWriter(f, self.columns)
+                    w.writeheader()
+                    w.writerows(rows)
+
+        write_atomic(self.path, write)
 
     def close(self) -> None:
-        self.file.close()
-        self.tb.close()
+        """Both files, the events too where metrics.csv cannot be flushed (a full disk): its writer's thread
+        must not outlive the run; then the error that thread met, if any."""
+        try:
+            with naming(self.path):
+                self.file.close()
+        finally:
+            self.tb.close()
+            if threading.excepthook == self._thread_failed:
+                threading.excepthook = self.hook
+        if self.events_error is not None:
+            with naming(self.events):
+                raise self.events_error
 
 
 def plot_learning_curve(out: Path, metric: str = "episode_length") -> Path:
@@ -547,12 +587,32 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
             raise ConfigError(f"invalid checkpoint={info['path']!r}: its resume state lacks {key!r}")
     # refuse a damaged config.json or metrics.csv before anything is written
     recorded_starts(read_config_json(out), out)
-    if (out / "metrics.csv").is_file():
+    if (out / "metrics.csv").exists():  # a folder of that name too, before the log would fail on it
         read_metrics(out / "metrics.csv", int(state["batches"]))
     played = int(state["episodes"])
     if played >= cfg.episodes:  # `make train` run again: say why nothing trains
         print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train")
     return {**state, "weights": weights, "info": info}
+
+
+FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+"""A full disk, a quota used up, a file past the size limit a process was given (`ulimit -f`)."""
+
+
+@contextlib.contextmanager
+def stops_in_one_line(out: Path) -> Iterator[None]:
+    """A file of the run the system will not write (a full disk, a quota, a folder made read-only meanwhile) stops
+    the run with an `OSError` that says so and what `--resume` goes on from: every file is replaced whole
+    (`bitcomm.files`), so the latest checkpoint is intact, and the rows and events logged past it are dropped on
+    resume (`Logger`)."""
+    try:
+        yield
+    except OSError as err:
+        latest = latest_name(out)
+        once = "there is room" if err.errno in FULL else "the file can be written"
+        resumes = f"--resume (or the same study again) goes on from it once {once}"
+        then = f"; its latest checkpoint, {latest}, is whole: {resumes}" if latest else " before its first checkpoint"
+        raise OSError(err.errno, f"{os_error_line(err)}; the run stopped{then}") from err
 
 
 def save_learner(

@@ -6,6 +6,7 @@ env's vector observations (`mlp.py`), the learned policy as a numpy-in/numpy-out
 where a command's policy comes from (`source.py`), the one evaluator (`evaluation.py`) and the CPU's
 denormal mode both training and evaluation run in (`denormals.py`).
 
-May import: `bitcomm.config`, `bitcomm.errors`, `bitcomm.checkpoint`, `bitcomm.stats`, `bitcomm.channel`,
-`bitcomm.envs`. Nothing here knows how a policy is trained. Importing the package imports nothing (no torch).
+May import: `bitcomm.config`, `bitcomm.errors`, `bitcomm.files`, `bitcomm.checkpoint`, `bitcomm.stats`,
+`bitcomm.channel`, `bitcomm.envs`. Nothing here knows how a policy is trained. Importing the package imports
+nothing (no torch).
 """

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import inspect
 import json
-import os
 import warnings
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ from typing import Any
 import torch
 
 from bitcomm.envs.core import MOVE_NAMES
+from bitcomm.files import write_atomic, write_text_atomic
 from bitcomm.policies.controller import Controller
 from bitcomm.policies.onnx_policy import FORMAT, INPUTS, METADATA_KEY, OUTPUTS, VERSION, require, sidecar_path
 
@@ -84,15 +84,14 @@ def export_onnx(controller: Controller, path: str | Path) -> dict[str, Any]:
     onnx = require("onnx")
     card = policy_card(controller)
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:  # renamed into place once whole: a robot never loads half a file
+
+    def write(tmp: Path) -> None:  # renamed into place once whole: a robot never loads half a file
         write_graph(controller, tmp)
         model = onnx.load(str(tmp))
         model.metadata_props.add(key=METADATA_KEY, value=json.dumps(card))
         onnx.checker.check_model(model)
         onnx.save(model, str(tmp))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    sidecar_path(path).write_text(json.dumps(card, indent=2) + "\n")
+
+    write_atomic(path, write)
+    write_text_atomic(sidecar_path(path), json.dumps(card, indent=2) + "\n")
     return card

@@ -53,6 +53,7 @@ import numpy as np
 
 from bitcomm.config import MAX_SEED, ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError, bad_value, check_int
+from bitcomm.files import write_atomic, write_text_atomic
 from bitcomm.learn.options import Option, learning_options
 from bitcomm.learn.recipes import DEFAULT_RECIPE
 from bitcomm.plotting import log_scale_suits, save_figure
@@ -309,12 +310,6 @@ def _latest(folder: Path) -> dict[str, Any]:
     return read_latest(folder / CHECKPOINTS)
 
 
-def write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 def run_status(run: Run) -> str:
     """`new`, `resume` (a checkpoint short of the budget, which may have changed) or `done` (the budget played);
     an error for a folder holding another run, or one that played past this budget under another."""
@@ -423,7 +418,7 @@ def evaluate_run(run: Run, episodes: int, seed: int) -> dict[str, Any]:
     }
     measures = _plays(run, episodes, seed)
     record.update({play: measures[play]().to_dict() for play in lacking(record)})
-    write_atomic(run.folder / EVALUATION, json.dumps(record, indent=2) + "\n")
+    write_text_atomic(run.folder / EVALUATION, json.dumps(record, indent=2) + "\n")
     return record
 
 
@@ -836,20 +831,22 @@ def write_curves_csv(
     """Every run's curve (a NamedTuple: episodes, wall_s, then `curve_columns`), at most CSV_POINTS rows each,
     with the configuration's `varied` values as columns."""
     columns = ["configuration", "technique", *varied, "seed", "episodes", "wall_s", *curve_columns]
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with tmp.open("w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(columns)
-        for run in runs:
-            curve = curves[run.folder]
-            n = len(curve.episodes)
-            keep = np.unique(np.linspace(0, n - 1, min(n, CSV_POINTS)).round().astype(int))
-            values = dict(run.configuration.values)
-            for i in keep:
-                writer.writerow([run.configuration.name, run.configuration.technique,
-                                 *(_format(values[v]) for v in varied), run.seed, int(curve.episodes[i]),
-                                 *(float(a[i]) for a in curve[1:])])  # fmt: skip
-    tmp.replace(path)
+
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(columns)
+            for run in runs:
+                curve = curves[run.folder]
+                n = len(curve.episodes)
+                keep = np.unique(np.linspace(0, n - 1, min(n, CSV_POINTS)).round().astype(int))
+                values = dict(run.configuration.values)
+                for i in keep:
+                    writer.writerow([run.configuration.name, run.configuration.technique,
+                                     *(_format(values[v]) for v in varied), run.seed, int(curve.episodes[i]),
+                                     *(float(a[i]) for a in curve[1:])])  # fmt: skip
+
+    write_atomic(path, write)
 
 
 def on_grid(curves: list[Any], field: str = "length_rolling") -> tuple[np.ndarray, np.ndarray]:
@@ -1037,6 +1034,6 @@ def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[
     summary = summarize(cfg, runs, curves, oracle)
     write_curves_csv(runs, curves, list(cfg.vary), cfg.out / "curves.csv")
     plot_curves(runs, curves, cfg, oracle, cfg.out / "curves.png")
-    write_atomic(cfg.out / "table.md", table_markdown(summary))
-    write_atomic(cfg.out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_text_atomic(cfg.out / "table.md", table_markdown(summary))
+    write_text_atomic(cfg.out / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary

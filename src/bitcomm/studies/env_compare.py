@@ -24,6 +24,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from bitcomm.files import write_text_atomic
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.plotting import save_figure
 from bitcomm.studies.compare import (
@@ -56,7 +57,6 @@ from bitcomm.studies.compare import (
     study_runs,
     study_seeds,
     technique_entry,
-    write_atomic,
     write_curves_csv,
 )
 
@@ -242,6 +242,6 @@ def run_env_compare(cfg: EnvCompareConfig, log: Callable[[str], None] = print) -
     summary = summarize(cfg, runs, curves)
     write_curves_csv(runs, curves, [], cfg.out / "curves.csv", CURVE_COLUMNS)
     plot_curves(runs, curves, cfg, cfg.out / "curves.png")
-    write_atomic(cfg.out / "table.md", table_markdown(summary))
-    write_atomic(cfg.out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_text_atomic(cfg.out / "table.md", table_markdown(summary))
+    write_text_atomic(cfg.out / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
