@@ -309,24 +309,29 @@ class StubCritic(torch.nn.Module):
         return 1000 * t + 100 * (viewpoint + 1) + (given.float() * torch.tensor([1.0, 2.0, 4.0])).sum(1)
 
 
-def test_multi_recipient_credit_by_hand() -> None:
-    """Agent 0 talks to agents 1 and 2, delay 2. Its message at t=0 is credited by both recipients at t=2,
-    at t=1 only by agent 1 (agent 2 is absent at t=3), at t=2 not at all (dropped), later never (arrives
-    after the end). Agents 1 and 2 talk to nobody: their messages get 0."""
-    n, T, d, gamma = 3, 5, 2, 0.5
+CREDIT_T = 5
+"""Steps of the hand-computed credit cases: agent 0 talks to agents 1 and 2 with delay 2, gamma 0.5."""
+CREDIT_Q = [1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 4 + 0.0625 * 5, 2 + 1.5 + 1 + 0.625, 3 + 2 + 1.25, 4 + 2.5, 5.0]
+"""Their returns from rewards 1, 2, 3, 4, 5."""
+
+
+def stub_value(t: int, viewpoint: int, given: list[int]) -> float:
+    """`StubCritic`'s value at step t from agent `viewpoint`'s view, given the actions of the agents `given`."""
+    return 1000 * t + 100 * (viewpoint + 1) + sum(2**k for k in given)
+
+
+def credit_by_hand(alive: torch.Tensor, dropped: torch.Tensor) -> Advantages:
+    """The improved estimator's advantages on the hand case (agents a, b, c; `alive` and `dropped` (T, 1, 3))."""
+    n, T, d = 3, CREDIT_T, 2
     rec = np.zeros((n, n), bool)
     rec[0, 1] = rec[0, 2] = True
     layout = EnvLayout(
         ("a", "b", "c"), (1, 1, 1), 1, 1, d, True, (2, 2, 2), np.zeros((n, 2)), np.zeros((n, 2)), 1, True,
         np.zeros(n, bool), rec,
     )  # fmt: skip
-    cfg = config(estimator="improved", gamma=gamma, adv_norm=False, channel={"bits": 1, "delay": d})
+    cfg = config(estimator="improved", gamma=0.5, adv_norm=False, channel={"bits": 1, "delay": d})
     learner = EnvLearner(cfg, layout)
     learner.critic = StubCritic()  # type: ignore[assignment]
-    alive = torch.ones(T, 1, n, dtype=torch.bool)
-    alive[3, 0, 2] = False
-    dropped = torch.zeros(T, 1, n, dtype=torch.bool)
-    dropped[2, 0, 0] = True
     rewards = torch.tensor([[1.0], [2.0], [3.0], [4.0], [5.0]])
     done, valid = torch.zeros(T, 1, dtype=torch.bool), torch.ones(T, 1, dtype=torch.bool)
     done[-1] = True
@@ -337,12 +342,20 @@ def test_multi_recipient_credit_by_hand() -> None:
         done, valid, np.array([T]), np.array([15.0]),
     )  # fmt: skip
     adv = learner.advantages(ro)
-    q = [1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 4 + 0.0625 * 5, 2 + 1.5 + 1 + 0.625, 3 + 2 + 1.25, 4 + 2.5, 5.0]
-    torch.testing.assert_close(adv.returns[:, 0], torch.tensor(q))
+    torch.testing.assert_close(adv.returns[:, 0], torch.tensor(CREDIT_Q))
+    return adv
 
-    def v(t: int, viewpoint: int, given: list[int]) -> float:
-        return 1000 * t + 100 * (viewpoint + 1) + sum(2**k for k in given)
 
+def test_multi_recipient_credit_by_hand() -> None:
+    """Agent 0 talks to agents 1 and 2, delay 2. Its message at t=0 is credited by both recipients at t=2,
+    at t=1 only by agent 1 (agent 2 is absent at t=3), at t=2 not at all (dropped), later never (arrives
+    after the end). Agents 1 and 2 talk to nobody: their messages get 0."""
+    q, v = CREDIT_Q, stub_value
+    alive = torch.ones(CREDIT_T, 1, 3, dtype=torch.bool)
+    alive[3, 0, 2] = False
+    dropped = torch.zeros(CREDIT_T, 1, 3, dtype=torch.bool)
+    dropped[2, 0, 0] = True
+    adv = credit_by_hand(alive, dropped)
     # the message baseline of sender 0 gives only agent 0's action (its recipients' are masked)
     m0 = [0.25 * ((q[2] - v(2, 1, [0])) + (q[2] - v(2, 2, [0]))), 0.25 * (q[3] - v(3, 1, [0])), 0.0, 0.0, 0.0]
     torch.testing.assert_close(adv.message[:, 0, 0], torch.tensor(m0))
@@ -359,34 +372,11 @@ def test_a_message_sent_before_its_sender_left_is_credited_on_arrival_by_hand() 
     there. The baseline at arrival never gives the absent sender's action; it sends nothing after it left (no
     credit, no log-probability). Agent 2 is truncated after step 2 while agent 1 plays on: at step 3 only
     agent 1 credits agent 0's last message."""
-    n, T, d, gamma = 3, 5, 2, 0.5
-    rec = np.zeros((n, n), bool)
-    rec[0, 1] = rec[0, 2] = True
-    layout = EnvLayout(
-        ("a", "b", "c"), (1, 1, 1), 1, 1, d, True, (2, 2, 2), np.zeros((n, 2)), np.zeros((n, 2)), 1, True,
-        np.zeros(n, bool), rec,
-    )  # fmt: skip
-    cfg = config(estimator="improved", gamma=gamma, adv_norm=False, channel={"bits": 1, "delay": d})
-    learner = EnvLearner(cfg, layout)
-    learner.critic = StubCritic()  # type: ignore[assignment]
-    alive = torch.ones(T, 1, n, dtype=torch.bool)
+    q, v = CREDIT_Q, stub_value
+    alive = torch.ones(CREDIT_T, 1, 3, dtype=torch.bool)
     alive[2:, 0, 0] = False  # agent 0 acts at steps 0 and 1 only
     alive[3:, 0, 2] = False  # agent 2 at steps 0 to 2
-    rewards = torch.tensor([[1.0], [2.0], [3.0], [4.0], [5.0]])
-    done, valid = torch.zeros(T, 1, dtype=torch.bool), torch.ones(T, 1, dtype=torch.bool)
-    done[-1] = True
-    z = torch.zeros(T, 1, n)
-    ro = EnvRollout(
-        z[..., None], torch.zeros(T, 1, n, 1, 1, dtype=torch.uint8), torch.arange(T).float().view(T, 1, 1), alive,
-        torch.zeros(T, 1, n, dtype=torch.long), torch.zeros(T, 1, n, 1, dtype=torch.uint8), z, z,
-        torch.zeros(T, 1, n, dtype=torch.bool), rewards, done, valid, np.array([T]), np.array([15.0]),
-    )  # fmt: skip
-    adv = learner.advantages(ro)
-    q = [1 + 0.5 * 2 + 0.25 * 3 + 0.125 * 4 + 0.0625 * 5, 2 + 1.5 + 1 + 0.625, 3 + 2 + 1.25, 4 + 2.5, 5.0]
-
-    def v(t: int, viewpoint: int, given: list[int]) -> float:
-        return 1000 * t + 100 * (viewpoint + 1) + sum(2**k for k in given)
-
+    adv = credit_by_hand(alive, torch.zeros(CREDIT_T, 1, 3, dtype=torch.bool))
     # the recipients' actions are masked and agent 0 is absent at arrival: nothing is given
     m0 = [0.25 * ((q[2] - v(2, 1, [])) + (q[2] - v(2, 2, []))), 0.25 * (q[3] - v(3, 1, [])), 0.0, 0.0, 0.0]
     torch.testing.assert_close(adv.message[:, 0, 0], torch.tensor(m0))
