@@ -302,7 +302,8 @@ class _FlushFails:
 
 
 def _fill_the_disk(what: str, monkeypatch: pytest.MonkeyPatch) -> str:
-    """Make the third write of `what` fail as on a full disk; returns the file the error line names."""
+    """Make a write of `what` after the first checkpoint fail as on a full disk; returns the file the error line
+    names."""
     import bitcomm.checkpoint
     from bitcomm.learn.run_folder import Logger
 
@@ -318,10 +319,12 @@ def _fill_the_disk(what: str, monkeypatch: pytest.MonkeyPatch) -> str:
 
         monkeypatch.setattr(Logger, "__init__", logger)
         return "metrics.csv"
-    if what == "tensorboard":  # written on TensorBoard's own thread
+    if what == "tensorboard":  # written on TensorBoard's own thread, which the main thread hears of later
         from tensorboard.summary.writer.record_writer import RecordWriter
 
-        monkeypatch.setattr(RecordWriter, "write", _full_on_call(3, RecordWriter.write))
+        # a write of the third batch's scalars (a header, then 11 a batch here): the main thread may hear of a
+        # failed write only a batch or two after it, and by then it must have a checkpoint to name
+        monkeypatch.setattr(RecordWriter, "write", _full_on_call(30, RecordWriter.write))
         return "tb"
     from matplotlib.figure import Figure
 
