@@ -222,8 +222,9 @@ class Logger:
     TensorBoard shows what metrics.csv holds. A resume drops the rows logged past its checkpoint (a `kill -9`
     leaves up to `checkpoint_seconds` of them) from both: from metrics.csv by rewriting it, from TensorBoard by
     the `purge_step` of its writer, which hides every earlier event at or past the first step it will log, so
-    no step shows twice or goes backwards. A fresh run removes the event files of the run it replaces, as it
-    does metrics.csv."""
+    no step shows twice or goes backwards. Both are flushed with each row, so that what a checkpoint's resume
+    keeps is on disk however the run ends (TensorBoard's writer thread would hold the last rows for up to two
+    minutes). A fresh run removes the event files of the run it replaces, as it does metrics.csv."""
 
     def __init__(self, out: Path, resume_batches: int | None) -> None:
         from torch.utils.tensorboard import SummaryWriter
@@ -283,6 +284,7 @@ class Logger:
             for key, value in row.items():
                 if "/" in key:
                     self.tb.add_scalar(key, value, step)
+            self.tb.flush()  # on disk as the row is: a `kill -9` after the next checkpoint must not take them
 
     def _rewrite(self, rows: list[dict[str, str]]) -> None:
         """metrics.csv as `rows` under `self.columns`, replaced whole: a kill or a full disk midway leaves the rows
