@@ -787,7 +787,10 @@ def _spawned_children(pid: int) -> list[int]:
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the workers in /proc")
 def test_an_a3c_worker_killed_outright_stops_the_run_saved_in_one_line(tmp_path: Path) -> None:
     """`kill -9` of one worker (or the OOM killer): the others stop after their batch and the run saves and ends
-    in one line; before, they trained on to the budget unseen and the run ended in a traceback, nothing saved."""
+    in one line; before, they trained on to the budget unseen and the run ended in a traceback, nothing saved.
+    A kill that lands while the worker holds the shared lock (its claim or optimizer step, a good part of a batch)
+    leaves the weights unreadable: the run ends in one line saying so and where `--resume` goes on (a CI run met
+    it; this test cannot choose the moment)."""
     out = tmp_path / "a3c"
     args = ["train", *QUICK[:-1], "3600", "--mode", "a3c", "--workers", "2", "--episodes", "96000"]
     proc = run_until_logged(args, out, 2, start_new_session=True)
@@ -800,8 +803,12 @@ def test_an_a3c_worker_killed_outright_stops_the_run_saved_in_one_line(tmp_path:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     lines = err.strip().splitlines()
-    assert proc.returncode == 2 and "Traceback" not in err and "exit code -9" in lines[-1], err
+    assert proc.returncode == 2 and "Traceback" not in err, err
     assert _spawned_children(proc.pid) == []
+    if "shared lock was not released" in lines[-1]:
+        assert "a worker killed while it held it" in lines[-1] and "--resume goes on" in lines[-1], err
+        return
+    assert "exit code -9" in lines[-1], err
     played = json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"]
     assert played == (len((out / "metrics.csv").read_text().splitlines()) - 1) * 16 and str(played) in lines[-1]
 
