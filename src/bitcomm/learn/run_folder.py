@@ -748,9 +748,7 @@ def train_batches(
                 bar.set_postfix(**postfix(row))
                 signum = stop_asked()
                 if signum is not None:
-                    path = save(rank)
-                    bar.close()
-                    raise stopped(signum, prog.episodes, path)
+                    saved_or_stopped(signum, prog.episodes, save(rank), bar)
                 if prog.episodes >= cfg.episodes:
                     return save(rank)
                 if score is not None or time.monotonic() - last_save >= cfg.checkpoint_seconds:

@@ -428,8 +428,6 @@ takes seconds) before it ends them at once; a second Ctrl-C ends them at once.""
 
 
 def _init_worker(parent: int) -> None:
-    import signal
-
     import torch
 
     from bitcomm.worker_exit import end_with_parent
