@@ -80,12 +80,7 @@ class EnvController:
         if not alive.any():  # nothing to act for: no network call, no draw (as `play` after every copy ended)
             return {}
         act_out, msg_logits = self.policy(torch.from_numpy(obs), torch.from_numpy(received))
-        dist, head = self.policy.actions, self.policy.head
-        if greedy:
-            actions, bits = dist.mode(act_out), head.mode(msg_logits)
-        else:
-            gen = generator or self.generator
-            actions, bits = dist.sample(act_out, gen), head.sample(msg_logits, gen)
+        actions, bits = self.policy.draw(act_out, msg_logits, greedy, generator or self.generator)
         present = [(i, a) for i, a in enumerate(L.agents) if alive[0, i]]
         return joint_action(L, L.clip(actions.numpy())[0], bits.numpy()[0], present)
 

@@ -76,10 +76,7 @@ def play(
     while valid_now.any():
         obs, received = torch.from_numpy(ob.obs), torch.from_numpy(ob.received)
         act_out, msg_logits = policy(obs, received)
-        if greedy:
-            actions, bits = dist.mode(act_out), policy.head.mode(msg_logits)
-        else:
-            actions, bits = dist.sample(act_out, generator), policy.head.sample(msg_logits, generator)
+        actions, bits = policy.draw(act_out, msg_logits, greedy, generator)
         logp_a, logp_m = dist.log_prob(act_out, actions), policy.head.log_prob(msg_logits, bits)
         a_np, bits_np = actions.numpy(), bits.numpy()
         st = vec.step(a_np, bits_np)

@@ -160,6 +160,16 @@ class MlpPolicy(nn.Module):
         h = self.trunk(x)
         return self.action_out(h), self.message_out(h)
 
+    def draw(
+        self, act_out: torch.Tensor, msg_logits: torch.Tensor, greedy: bool, generator: torch.Generator | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Actions and message bits from `forward`'s outputs: sampled from `generator`, or with `greedy` the most
+        likely of each (the one rule of evaluation's rollout and `bitcomm.EnvController`)."""
+        dist = self.actions
+        if greedy:
+            return dist.mode(act_out), self.head.mode(msg_logits)
+        return dist.sample(act_out, generator), self.head.sample(msg_logits, generator)
+
 
 class MlpCritic(nn.Module):
     """V(state, whose value, others' actions with "given" flags [, the messages that agent received]).
