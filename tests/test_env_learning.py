@@ -139,8 +139,9 @@ class SpacesEnv(ParallelEnv):
 
 
 class OddRewardEnv(SignalEnv):
-    """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...) from its `from_reset`-th
-    reset on (each copy counts its own; the first copy is also reset once when its spaces are read)."""
+    """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...; "raise": its step raises, as
+    an env's own bug would) from its `from_reset`-th reset on (each copy counts its own; the first copy is also
+    reset once when its spaces are read)."""
 
     def __init__(self, reward: Any = "nan", from_reset: int = 1) -> None:
         super().__init__()
@@ -153,6 +154,8 @@ class OddRewardEnv(SignalEnv):
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         obs, rewards, term, trunc, infos = super().step(actions)
         if self.resets >= self.from_reset:
+            if self.reward == "raise":
+                raise ZeroDivisionError("the env's own bug")
             rewards = dict.fromkeys(rewards, self.reward)
         return obs, rewards, term, trunc, infos
 
@@ -482,6 +485,18 @@ def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:
         f"invalid rewards['speaker']=nan: the env's rewards must be finite numbers; saved after 8 episodes as "
         f"{saved}; --resume goes on"
     )
+    assert saved.is_file()
+
+
+def test_an_env_that_raises_mid_run_keeps_its_traceback_and_saves_what_was_learned(tmp_path: Path) -> None:
+    """The env's own exception is its author's bug report, so it is not turned into one line; the run saves first."""
+    cfg = config(env=f"{__name__}:OddRewardEnv", env_kwargs={"reward": "raise", "from_reset": 3})
+    with pytest.raises(ZeroDivisionError, match="the env's own bug") as err:
+        train_env(cfg, tmp_path / "run", progress=False)
+    saved = tmp_path / "run" / "checkpoints" / "ckpt_000000008.safetensors"
+    assert err.value.__notes__ == [
+        f"bitcomm: the env raised this while playing a batch; saved after 8 episodes as {saved}; --resume goes on"
+    ]
     assert saved.is_file()
 
 

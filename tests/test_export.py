@@ -146,7 +146,7 @@ def test_the_runtime_needs_no_torch(exported: tuple[Path, Path]) -> None:
 
 def test_cli_exports_a_run_folder(exported: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     run, reference = exported
-    out = tmp_path / "cli.onnx"
+    out = tmp_path / "new" / "folder" / "cli.onnx"  # made, as `render --out` makes its folder
     assert main(["export", str(run), "--onnx", str(out)]) == 0
     assert str(out) in capsys.readouterr().out
     assert out.stat().st_size > 0 and sidecar_path(out).is_file()
@@ -184,7 +184,7 @@ def _bad_onnx(tmp_path: Path) -> Path:
     ("argv", "named"),
     [
         (["export", "{missing}", "--onnx", "{out}"], "checkpoint"),
-        (["export", "{run}", "--onnx", "{tmp}/no/such/folder/p.onnx"], "onnx"),
+        (["export", "{run}", "--onnx", "{bad}/p.onnx"], "onnx"),  # its folder is a file
         (["export", "{run}", "--onnx", "{tmp}"], "onnx"),
         (["export", "{run}"], "--onnx"),
         (["export", "{run}", "--onnx", "{run}/checkpoints/ckpt_000000016.safetensors"], "checkpoints folder"),

@@ -128,7 +128,9 @@ def test_improved_message_gradient_has_lower_variance(run_dir: Path) -> None:
 def test_cli_writes_csv_markdown_png_and_json(run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "var"
     quick = ["--batches", "6", "--num-envs", "8", "--fit-batches", "3", "--out", str(out)]
-    assert main(["variance", str(run_dir), *quick]) == 0
+    assert main(["variance", str(run_dir), *quick, "--stages", "spread:3"]) == 0
+    printed = capsys.readouterr()
+    assert f"{run_dir}: spread:3 measures the 2 checkpoints it keeps" in printed.err.splitlines()
     with (out / "variance.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert [(int(r["episodes"]), r["part"]) for r in rows] == [(e, p) for e in (16, 32) for p in PARTS]
@@ -141,7 +143,7 @@ def test_cli_writes_csv_markdown_png_and_json(run_dir: Path, tmp_path: Path, cap
     assert sum(line.startswith("| 16 |") or line.startswith("| 32 |") for line in table) == 6
     assert (out / "variance.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "variance.svg").read_text().startswith("<?xml")
-    assert "wrote" in capsys.readouterr().out
+    assert "wrote" in printed.out
     record = json.loads((out / "provenance.json").read_text())  # what made the figure: flags, task, code, machine
     assert record["settings"]["seed"] == 0 and record["settings"]["task"]["env"]["size"] == 3
     assert set(RECORDED) <= set(record)

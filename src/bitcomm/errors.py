@@ -26,6 +26,11 @@ def one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {' '.join(str(err).split())}"
 
 
+def plural(n: int, one: str, many: str) -> str:
+    """`1 episode`, `2 episodes`: a count in a message, as a reader says it."""
+    return f"{n} {one if n == 1 else many}"
+
+
 def os_error_line(err: OSError) -> str:
     """What the system refused, on one line: the file, if the error names one, then why (`[Errno 28] No space
     left on device: 'x'` without the number, which tells a user nothing the words do not)."""

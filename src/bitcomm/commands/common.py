@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 from bitcomm import provenance
 from bitcomm.commands.flags import integer, number
 from bitcomm.config import MAX_AGENTS, MAX_SIZE, MAX_STEPS, ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import plural
 
 if TYPE_CHECKING:
     from bitcomm.policies.evaluation import EvalResult
@@ -96,7 +97,6 @@ def print_result(result: EvalResult, as_json: bool, title: str) -> None:
         json.dump(result.to_dict(), sys.stdout)
         sys.stdout.write("\n")
         return
-    from bitcomm.studies.compare import plural
 
     lo, hi = result.ci95
     print(

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 from bitcomm.commands.backend_flags import SAVING, check_resume_flags
 from bitcomm.commands.env_flags import ENV_ONLY
 from bitcomm.commands.learning_flags import learning_overrides
-from bitcomm.errors import bad_value
+from bitcomm.errors import bad_value, plural
 
 if TYPE_CHECKING:
     from bitcomm.learn.env_config import EnvTrainConfig
@@ -197,7 +197,6 @@ def print_env_result(result: Any, as_json: bool, title: str) -> None:
     if as_json:
         print(json.dumps(result.to_dict()))
         return
-    from bitcomm.studies.compare import plural
 
     (rlo, rhi), (llo, lhi) = result.return_ci95, result.length_ci95
     print(

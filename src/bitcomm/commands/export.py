@@ -33,8 +33,6 @@ def _check_output(path: Path) -> None:
 
     if path.is_dir():
         raise bad_value("onnx", str(path), "is a folder; give a file name such as policy.onnx")
-    if not path.parent.is_dir():
-        raise bad_value("onnx", str(path), f"its folder {str(path.parent)!r} does not exist")
     if (path.parent / LATEST).is_file():
         raise bad_value("onnx", str(path), "is in a run's checkpoints folder, where it could replace the run's files")
     for target in (path, sidecar_path(path)):
@@ -52,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     require("onnx")
     controller = Controller.load(args.run_path)
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)  # as `render --out` and every other output flag do
         card = export_onnx(controller, out)
     except OSError as err:
         raise bad_value("onnx", str(out), f"cannot be written ({err.strerror or err})") from None

@@ -21,6 +21,7 @@ from bitcomm.commands.flags import (
     out_dir,
     use_threads,
 )
+from bitcomm.errors import plural
 
 if TYPE_CHECKING:
     from bitcomm.studies.variance import VarianceConfig
@@ -108,7 +109,13 @@ def run(args: argparse.Namespace) -> int:
 
     vcfg = variance_config(args)
     stages = parse_stages(args.stages)
-    files = [file for path in args.paths for file in select_stages(path, stages)]  # fail early, before measuring
+    files = []
+    for path in args.paths:  # fail early, before measuring
+        picked = select_stages(path, stages)
+        if isinstance(stages, int) and len(picked) < stages:  # a run folder keeps only so many checkpoints
+            kept = plural(len(picked), "checkpoint", "checkpoints")
+            print(f"{path}: spread:{stages} measures the {kept} it keeps", file=sys.stderr)
+        files += picked
     use_threads(args)
     rows, task = [], None
     for file in files:

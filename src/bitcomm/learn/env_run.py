@@ -79,14 +79,17 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
         rng = generator.get_state(), torch.get_rng_state()
         try:  # rollout: batch k's episodes are fixed by (seed, k)
             ro = play(vec, learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,)), generator)
-        except ConfigError as err:  # a worker died (`WorkerDied`) or the env gave what it may not (a NaN reward...)
-            if not prog.batches:  # nothing learned yet: no checkpoint, so that the same command starts afresh
-                raise
+        except Exception as err:  # a worker died (`WorkerDied`), the env gave what it may not (a NaN reward...)
+            if not prog.batches:  # or the env's own code raised; nothing learned yet: no checkpoint, so that the
+                raise  # same command starts afresh
             # the learner is as the last batch left it: save that, as a stop signal would,
             generator.set_state(rng[0])  # and the draws as they were, so a resume plays this batch as it would have
             torch.set_rng_state(rng[1])
-            path = save(None)
-            raise ConfigError(f"{err}; saved after {prog.episodes} episodes as {path}; --resume goes on") from None
+            saved_as = f"saved after {prog.episodes} episodes as {save(None)}; --resume goes on"
+            if isinstance(err, ConfigError):
+                raise ConfigError(f"{err}; {saved_as}") from None
+            err.add_note(f"bitcomm: the env raised this while playing a batch; {saved_as}")  # its traceback is
+            raise  # the env's own bug report: kept
         # update
         stats = learner.update(ro, generator)
         learner.policy.obs_norm.update(ro.obs, ro.alive)  # after the update: one batch, one set of statistics

@@ -52,7 +52,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from bitcomm.config import MAX_SEED, ChannelConfig, EnvConfig, TaskConfig
-from bitcomm.errors import ConfigError, bad_value, check_int
+from bitcomm.errors import ConfigError, bad_value, check_int, plural
 from bitcomm.files import write_atomic, write_text_atomic
 from bitcomm.learn.options import Option, learning_options
 from bitcomm.learn.recipes import DEFAULT_RECIPE
@@ -141,10 +141,6 @@ def parse_techniques(text: str) -> tuple[str, ...]:
     if not names or any(t not in CHOICES for t in names) or len(set(names)) != len(names):
         raise bad_value("techniques", text, f"a comma-separated subset of {', '.join(CHOICES)}")
     return names
-
-
-def plural(n: int, one: str, many: str) -> str:
-    return f"{n} {one if n == 1 else many}"
 
 
 def _format(value: Any) -> str:
