@@ -34,15 +34,17 @@ SPEC = f"{__name__}:SignalEnv"
 class SignalEnv(ParallelEnv):
     """Speaker (obs: the bit; 1 action) and listener (obs: 3 numbers, no bit; 2 actions). From step 1 on, the
     listener earns 1 when its action equals the bit. `steps` steps; with `speaker_leaves` the speaker
-    terminates after step 0; with `box`, Box actions (speaker 1 number, listener 2; the listener's action is
-    1 when its first number is positive). No `state()`: the critic reads the concatenated observations."""
+    terminates after step 0; with `handover` the speaker alone plays step 0 and the listener joins as it
+    leaves (its message on the wire between them); with `box`, Box actions (speaker 1 number, listener 2; the
+    listener's action is 1 when its first number is positive). No `state()`: the critic reads the concatenated
+    observations."""
 
     metadata = {"name": "signal_v0"}
 
-    def __init__(self, steps: int = 2, speaker_leaves: bool = False, box: bool = False) -> None:
+    def __init__(self, steps: int = 2, speaker_leaves: bool = False, box: bool = False, handover: bool = False) -> None:
         self.possible_agents = ["speaker", "listener"]
         self.agents: list[str] = []
-        self.steps, self.speaker_leaves = steps, speaker_leaves
+        self.steps, self.speaker_leaves, self.handover = steps, speaker_leaves or handover, handover
         self._obs = {"speaker": spaces.Box(0, 1, (1,), np.float32), "listener": spaces.Box(0, 1, (3,), np.float32)}
         self._act: dict[str, spaces.Space] = {"speaker": spaces.Discrete(1), "listener": spaces.Discrete(2)}
         if box:
@@ -63,21 +65,30 @@ class SignalEnv(ParallelEnv):
 
     def reset(self, seed: int | None = None, options: Any = None) -> tuple[dict, dict]:
         self.bit, self.t = int(np.random.default_rng(seed).integers(2)), 0
-        self.agents = list(self.possible_agents)
-        return self._observe(), {a: {} for a in self.agents}
+        self.agents = ["speaker"] if self.handover else list(self.possible_agents)
+        obs = self._observe()
+        return {a: obs[a] for a in self.agents}, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
-        act = actions["listener"]
-        if self.box:
+        act = actions.get("listener")
+        if self.box and act is not None:
             assert np.all(np.abs(act) <= 1), act  # clipped to the bounds before it reaches the env
-        r = float(self.t >= 1 and int(act[0] > 0 if self.box else act) == self.bit)
+        r = float(act is not None and self.t >= 1 and int(act[0] > 0 if self.box else act) == self.bit)
         self.t += 1
         acting = list(self.agents)
         trunc = {a: self.t >= self.steps for a in acting}
         term = {a: a == "speaker" and self.speaker_leaves for a in acting}
         self.agents = [a for a in acting if not (trunc[a] or term[a])]
+        if self.handover and self.t == 1 and self.t < self.steps:
+            self.agents.append("listener")
         obs = self._observe()
-        return {a: obs[a] for a in acting}, {a: r for a in acting}, term, trunc, {a: {} for a in acting}
+        return (
+            {a: obs[a] for a in {*acting, *self.agents}},
+            {a: r for a in acting},
+            term,
+            trunc,
+            {a: {} for a in acting},
+        )
 
 
 SPACES = {
@@ -200,6 +211,18 @@ def test_vector_env_and_rollout_shapes() -> None:
     assert torch.equal(ro.state[0], ro.obs[0].flatten(1))  # no state(): the padded observations
     assert (ro.actions[:, :, 0] == 0).all()  # the speaker has one action: the rest are masked
     np.testing.assert_array_equal(ro.length, [3] * B)
+
+
+def test_an_agent_that_joins_as_the_others_leave_plays_on() -> None:
+    """The episode ends when no listed agent plays on, not when every agent that acted has finished: here the
+    speaker's last step is the listener's first."""
+    vec = VecEnv(env_factory(config(env_kwargs={"steps": 3, "handover": True})), 4)
+    torch.manual_seed(0)
+    ro = play(vec, EnvLearner(config(), vec.layout).policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    np.testing.assert_array_equal(ro.length, [3] * 4)
+    assert ro.alive[0, :, 0].all() and not ro.alive[0, :, 1].any()  # step 0: the speaker alone
+    assert ro.alive[1:, :, 1].all() and not ro.alive[1:, :, 0].any()  # then the listener alone
+    assert ro.done[-1].all() and not ro.done[:-1].any()
 
 
 def test_box_actions_are_gaussian_and_padded() -> None:

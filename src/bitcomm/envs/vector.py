@@ -268,7 +268,9 @@ class VecEnv:
             for i, a in acting:
                 rewards[b, i] = finite_reward(rew.get(a, 0.0), a)
                 dropped[b, i] = bool(infos.get(a, {}).get("message_dropped", False))
-            if not env.agents or all(term.get(a, False) or trunc.get(a, False) for _, a in acting):
+            # over when no listed agent plays on (an env may list every agent, all done, at the end; an agent
+            # may join at the step the others finish)
+            if all(term.get(a, False) or trunc.get(a, False) for a in env.agents):
                 ended[b] = True
                 self.running[b] = False
             else:
