@@ -29,16 +29,19 @@ from bitcomm.policies.source import PolicySource
 class Inbox:
     """Datagrams from peers, kept by (sender, episode, step) until their step is played. One this agent cannot
     read (another run's, one of `bits` bits other than the task's, one from a sender it does not hear) is counted
-    as foreign and dropped: a stray or garbled datagram never stops an agent."""
+    as foreign and dropped: a stray or garbled datagram never stops an agent. A second copy of a message it holds
+    (a radio may repeat one) is counted as duplicate, so `received` counts messages; one whose step was played
+    already is counted as late."""
 
     def __init__(self, sock: socket.socket, run_id: int, bits: int, senders: list[int]) -> None:
         self.sock, self.run_id, self.bits, self.senders = sock, run_id, bits, set(senders)
         self.messages: dict[tuple[int, int, int], np.ndarray] = {}
         self.played: tuple[int, int] = (-1, -1)  # (episode, step) of the latest messages read
-        self.stats = {"received": 0, "late": 0, "foreign": 0}
+        self.stats = {"received": 0, "late": 0, "duplicate": 0, "foreign": 0}
 
-    def drain(self, timeout: float) -> None:
-        """Take every waiting datagram, waiting up to `timeout` seconds for the first."""
+    def drain(self, timeout: float, until: float) -> None:
+        """Take every waiting datagram, waiting up to `timeout` seconds for the first; past `until` (a
+        `time.monotonic()` time) it stops after the datagram in hand, so a flood cannot hold the agent there."""
         self.sock.settimeout(timeout if timeout > 0 else 0.0)  # 0: non-blocking
         while True:
             try:
@@ -51,20 +54,24 @@ class Inbox:
                 self.stats["foreign"] += 1
             elif (d.episode, d.step) <= self.played:
                 self.stats["late"] += 1  # its step was already played without it
+            elif (d.sender, d.episode, d.step) in self.messages:
+                self.stats["duplicate"] += 1
             else:
                 self.stats["received"] += 1
                 self.messages[(d.sender, d.episode, d.step)] = d.bits
+            if time.monotonic() >= until:
+                return
 
     def take(self, senders: list[int], episode: int, step: int, deadline: float) -> dict[int, np.ndarray]:
         """The messages of `senders` for (episode, step), waiting until `deadline` for missing ones."""
         while True:
-            self.drain(0.0)
+            self.drain(0.0, deadline)
             if all((j, episode, step) in self.messages for j in senders):
                 break
             left = deadline - time.monotonic()
             if left <= 0:
                 break
-            self.drain(left)
+            self.drain(left, deadline)
         got = {j: self.messages[(j, episode, step)] for j in senders if (j, episode, step) in self.messages}
         self.played = (episode, step)
         self.messages = {k: v for k, v in self.messages.items() if (k[1], k[2]) > self.played}
@@ -96,7 +103,7 @@ def run_agent(world: tuple[str, int], agent: int, token: str) -> int:
     while True:
         msg = ctl.recv(stop_at)
         if msg["type"] == "stop":
-            inbox.drain(0.0)  # count what arrived for steps never played
+            inbox.drain(0.0, time.monotonic() + deadline_s)  # count what arrived for steps never played
             ctl.send({"type": "stats", "agent": agent, **stats, **inbox.stats})
             return 0
         episode, t = int(msg["episode"]), int(msg["t"])
