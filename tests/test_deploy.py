@@ -17,6 +17,7 @@ import pytest
 
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.deploy import DeployError, episode_set, place_episode, run_deploy
+from bitcomm.deploy import agent as agent_module
 from bitcomm.deploy import world as world_module
 from bitcomm.deploy.agent import Inbox
 from bitcomm.deploy.protocol import pack_datagram, unpack_datagram
@@ -106,6 +107,15 @@ def test_a_flood_does_not_hold_an_agent_past_its_deadline() -> None:
     got = inbox.take([1], episode=0, step=0, deadline=began + 0.05)
     assert time.monotonic() - began < 1.0
     assert got == {} and inbox.stats["foreign"] > 0 and inbox.stats["received"] == 0
+
+
+@pytest.mark.parametrize("world", ["localhost", "127.0.0.1:http", "127.0.0.1:70000", ":5"])
+def test_an_agent_started_with_a_bad_world_address_says_so_in_one_line(
+    world: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert agent_module.main(["--world", world, "--agent", "0"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err and f"invalid world={world!r}" in err
 
 
 @pytest.mark.parametrize("task", [TINY, TaskConfig(EnvConfig(size=5, n_agents=3, observes=(2, 0, 1)))])

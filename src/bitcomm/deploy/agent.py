@@ -23,6 +23,7 @@ import numpy as np
 
 from bitcomm.config import TaskConfig
 from bitcomm.deploy.protocol import LineSocket, PeerGone, decode_array, pack_datagram, unpack_datagram
+from bitcomm.errors import ConfigError, bad_value
 from bitcomm.policies.source import PolicySource
 
 
@@ -129,15 +130,29 @@ def run_agent(world: tuple[str, int], agent: int, token: str) -> int:
         ctl.send({"type": "move", "agent": agent, "episode": episode, "t": t, "move": int(move[0])})
 
 
+def world_address(text: str) -> tuple[str, int]:
+    """`HOST:PORT` as `(host, port)`, or one error line."""
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise bad_value("world", text, "give HOST:PORT, PORT in 1..65535 (the world's control socket)")
+    return host, int(port)
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bitcomm.deploy.agent", description=__doc__.split("\n")[0])
+    prog = "python -m bitcomm.deploy.agent"
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
     p.add_argument("--world", required=True, help="HOST:PORT of the world's control socket")
     p.add_argument("--agent", type=int, required=True, help="this agent's index")
     p.add_argument("--token", default="", help="the run's token, proving to the world who started us")
     args = p.parse_args(argv)
-    host, port = args.world.rsplit(":", 1)
     try:
-        return run_agent((host, int(port)), args.agent, args.token)
+        return run_agent(world_address(args.world), args.agent, args.token)
+    except ConfigError as err:
+        print(f"{prog}: error: {err}", file=sys.stderr)
+        return 2
+    except socket.gaierror as err:  # before ConnectionError's OSError kin: a host name that does not resolve
+        print(f"agent {args.agent}: world host of {args.world!r} not found ({err.strerror}); exiting", file=sys.stderr)
+        return 1
     except (PeerGone, TimeoutError, ConnectionError) as err:
         print(f"agent {args.agent}: world gone or silent ({err}); exiting", file=sys.stderr)
         return 1
