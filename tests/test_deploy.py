@@ -151,6 +151,29 @@ def test_dropped_datagrams_make_it_worse() -> None:
     assert net["missing"] > 0
 
 
+FAILING_RADIO = """
+import errno, socket
+_sendto, _calls = socket.socket.sendto, [0]
+def sendto(self, *args):
+    _calls[0] += 1
+    if self.type == socket.SOCK_DGRAM and _calls[0] % 3 == 0:
+        raise OSError(errno.ENOBUFS, "No buffer space available")
+    return _sendto(self, *args)
+socket.socket.sendto = sendto
+"""
+
+
+def test_a_datagram_the_radio_fails_to_send_is_lost_not_fatal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A radio's send can fail (no buffer space, the link down): the message is lost, as a dropped one is, and
+    counted (`send_failed`); the run goes on."""
+    (tmp_path / "sitecustomize.py").write_text(FAILING_RADIO)  # loaded by each agent process at start
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), *sys.path]))
+    result = run_deploy(ORACLE, TINY, 20, seed=1, deadline_ms=5, timeout_s=60)
+    net = result.network
+    assert len(result.outcomes) == 20 and net["send_failed"] > 0 and net["sent"] > 0
+    assert net["missing"] > 0  # read as zeros at the deadline
+
+
 def test_actuation_noise_is_applied_by_the_world() -> None:
     shaky = TaskConfig(EnvConfig(size=4, act_fail_prob=0.4, act_delay=1), TINY.channel)
     result = run_deploy(ORACLE, shaky, 40, seed=2, deadline_ms=50, timeout_s=60)

@@ -5,7 +5,8 @@ world (its observation and step in, its move out) and UDP to its peers (K-bit me
 1. wait for the messages that belong to this step (sent `delay` steps ago by the agents it hears) until
    the deadline; one that has not arrived by then reads as zeros, as a dropped message does;
 2. choose a move and K bits with its policy;
-3. send the bits to each recipient as a datagram, after the wire's seeded bit flips and on-purpose drops;
+3. send the bits to each recipient as a datagram, after the wire's seeded bit flips and on-purpose drops (a send
+   the system refuses is a lost datagram, counted as `send_failed`);
 4. reply the move to the world.
 It exits when the world says stop, when the world's connection closes (the world ended or died), or
 at the run's time bound, whichever comes first.
@@ -98,7 +99,7 @@ def run_agent(world: tuple[str, int], agent: int, token: str) -> int:
     hears = [j for j in slot_senders if j >= 0]
     deadline_s = float(cfg["deadline_ms"]) / 1000.0
     inbox = Inbox(udp, int(cfg["run_id"]), K, hears)
-    stats = {"sent": 0, "dropped": 0, "missing": 0}
+    stats = {"sent": 0, "dropped": 0, "send_failed": 0, "missing": 0}
     seq = 0
     ctl.send({"type": "ready", "agent": agent})
     while True:
@@ -124,7 +125,11 @@ def run_agent(world: tuple[str, int], agent: int, token: str) -> int:
             if drop_prob > 0.0 and wire.random() < drop_prob:
                 stats["dropped"] += 1
                 continue
-            udp.sendto(pack_datagram(inbox.run_id, agent, episode, t, seq, out), peer)
+            try:
+                udp.sendto(pack_datagram(inbox.run_id, agent, episode, t, seq, out), peer)
+            except OSError:  # no buffer space, the link down: on a radio, a lost datagram, not a lost agent
+                stats["send_failed"] += 1
+                continue
             stats["sent"] += 1
         seq += 1
         ctl.send({"type": "move", "agent": agent, "episode": episode, "t": t, "move": int(move[0])})
