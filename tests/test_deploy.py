@@ -17,6 +17,7 @@ import pytest
 
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.deploy import DeployError, episode_set, place_episode, run_deploy
+from bitcomm.deploy import agent as agent_module
 from bitcomm.deploy import world as world_module
 from bitcomm.deploy.agent import Inbox
 from bitcomm.deploy.protocol import pack_datagram, unpack_datagram
@@ -58,7 +59,63 @@ def test_an_agent_drops_datagrams_it_cannot_read() -> None:
             tx.sendto(datagram, rx.getsockname())
         got = inbox.take([1], episode=0, step=0, deadline=time.monotonic() + 2.0)
     np.testing.assert_array_equal(got[1], four)
-    assert inbox.stats == {"received": 1, "late": 0, "foreign": 4} and not inbox.messages
+    assert inbox.stats == {"received": 1, "late": 0, "duplicate": 0, "foreign": 4} and not inbox.messages
+
+
+def test_reordered_duplicated_and_late_datagrams_each_count_once() -> None:
+    """A radio may deliver step 1 before step 0, repeat a datagram, or deliver one after its step was played:
+    each message is read at its own step, `received` counts messages (not copies), and nothing stale is kept."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+        rx.bind(("127.0.0.1", 0))
+        inbox = Inbox(rx, run_id=7, bits=4, senders=[1])
+        step0, step1 = np.array([1, 0, 0, 1], dtype=np.uint8), np.array([0, 1, 1, 0], dtype=np.uint8)
+        for datagram in (
+            pack_datagram(7, 1, 0, 1, 1, step1),  # ahead of its predecessor
+            pack_datagram(7, 1, 0, 0, 0, step0),
+            pack_datagram(7, 1, 0, 0, 0, step0),  # a repeat
+        ):
+            tx.sendto(datagram, rx.getsockname())
+        time.sleep(0.05)  # all three waiting, as after a burst
+        got0 = inbox.take([1], episode=0, step=0, deadline=time.monotonic() + 2.0)
+        tx.sendto(pack_datagram(7, 1, 0, 0, 0, step0), rx.getsockname())  # a third copy, after step 0 was played
+        time.sleep(0.05)
+        got1 = inbox.take([1], episode=0, step=1, deadline=time.monotonic() + 2.0)
+    np.testing.assert_array_equal(got0[1], step0)
+    np.testing.assert_array_equal(got1[1], step1)
+    assert inbox.stats == {"received": 2, "late": 1, "duplicate": 1, "foreign": 0} and not inbox.messages
+
+
+class _Flood:
+    """A UDP socket with another datagram always waiting, as under a flood faster than the agent reads (for a few
+    seconds only, so that an agent that would read on forever fails the test rather than hangs it)."""
+
+    def __init__(self, datagram: bytes) -> None:
+        self.datagram, self.ends = datagram, time.monotonic() + 5.0
+
+    def settimeout(self, timeout: float) -> None:
+        pass
+
+    def recv(self, size: int) -> bytes:
+        if time.monotonic() > self.ends:
+            raise BlockingIOError
+        return self.datagram
+
+
+def test_a_flood_does_not_hold_an_agent_past_its_deadline() -> None:
+    inbox = Inbox(_Flood(b"noise"), run_id=7, bits=4, senders=[1])  # type: ignore[arg-type]
+    began = time.monotonic()
+    got = inbox.take([1], episode=0, step=0, deadline=began + 0.05)
+    assert time.monotonic() - began < 1.0
+    assert got == {} and inbox.stats["foreign"] > 0 and inbox.stats["received"] == 0
+
+
+@pytest.mark.parametrize("world", ["localhost", "127.0.0.1:http", "127.0.0.1:70000", ":5"])
+def test_an_agent_started_with_a_bad_world_address_says_so_in_one_line(
+    world: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert agent_module.main(["--world", world, "--agent", "0"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err and f"invalid world={world!r}" in err
 
 
 @pytest.mark.parametrize("task", [TINY, TaskConfig(EnvConfig(size=5, n_agents=3, observes=(2, 0, 1)))])
@@ -92,6 +149,29 @@ def test_dropped_datagrams_make_it_worse() -> None:
     assert result.summary.mean_episode_length > float(np.mean(clean))
     assert 0.2 < net["dropped"] / (net["sent"] + net["dropped"]) < 0.4
     assert net["missing"] > 0
+
+
+FAILING_RADIO = """
+import errno, socket
+_sendto, _calls = socket.socket.sendto, [0]
+def sendto(self, *args):
+    _calls[0] += 1
+    if self.type == socket.SOCK_DGRAM and _calls[0] % 3 == 0:
+        raise OSError(errno.ENOBUFS, "No buffer space available")
+    return _sendto(self, *args)
+socket.socket.sendto = sendto
+"""
+
+
+def test_a_datagram_the_radio_fails_to_send_is_lost_not_fatal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A radio's send can fail (no buffer space, the link down): the message is lost, as a dropped one is, and
+    counted (`send_failed`); the run goes on."""
+    (tmp_path / "sitecustomize.py").write_text(FAILING_RADIO)  # loaded by each agent process at start
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), *sys.path]))
+    result = run_deploy(ORACLE, TINY, 20, seed=1, deadline_ms=5, timeout_s=60)
+    net = result.network
+    assert len(result.outcomes) == 20 and net["send_failed"] > 0 and net["sent"] > 0
+    assert net["missing"] > 0  # read as zeros at the deadline
 
 
 def test_actuation_noise_is_applied_by_the_world() -> None:

@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -32,12 +33,15 @@ TWO_SLOTS = TaskConfig(
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 
 
-def make_checkpoint(folder: Path, task: TaskConfig = TINY, messages: str = "bitwise", coords: bool = False) -> Path:
-    """A run folder with one checkpoint of an untrained policy, written by the trainer's own writer."""
+def make_checkpoint(
+    folder: Path, task: TaskConfig = TINY, messages: str = "bitwise", coords: bool = False, **model: Any
+) -> Path:
+    """A run folder with one checkpoint of an untrained policy, written by the trainer's own writer; `model`: other
+    network settings than the `reinforced` recipe's."""
     from bitcomm.learn.config import make_train_config
 
     coord_planes = {"coords": True, "encoder": "conv"} if coords else {}  # coordinate planes serve convolutions
-    cfg = make_train_config("reinforced", task, messages=messages, **coord_planes)
+    cfg = make_train_config("reinforced", task, messages=messages, **coord_planes, **model)
     torch.manual_seed(0)
     net = PolicyNet(task, cfg.model)
     with torch.no_grad():  # larger weights than at initialisation: logits far apart, as after training
@@ -78,6 +82,29 @@ def test_onnx_logits_equal_pytorch(tmp_path: Path, messages: str, coords: bool, 
     assert move.shape == (37, 5) and message.shape == (37, out)
     np.testing.assert_allclose(move, torch_move.numpy(), rtol=0, atol=1e-5)
     np.testing.assert_allclose(message, torch_message.numpy(), rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        {"encoder": "cells", "message_map": True, "message_reads": "all"},  # the cells encoder, a message map
+        {"encoder": "marginals", "message_reads": "all", "plane_coords": False},  # the paper's message head
+    ],
+)
+def test_onnx_logits_equal_pytorch_for_other_networks(tmp_path: Path, model: dict[str, Any]) -> None:
+    controller = Controller.load(make_checkpoint(tmp_path / "run", TWO_SLOTS, **model))
+    export_onnx(controller, tmp_path / "policy.onnx")
+    onnx = OnnxController.load(tmp_path / "policy.onnx")
+    planes, received = random_inputs(TWO_SLOTS, 37)
+    with torch.no_grad():
+        expected = controller.policy(torch.from_numpy(planes), torch.from_numpy(received))
+    for got, want in zip(onnx.logits(planes, received), expected, strict=True):
+        np.testing.assert_allclose(got, want.numpy(), rtol=0, atol=1e-5)
+    planes = (planes > 0.5).astype(np.float32)  # acting takes 0/1 planes
+    for a, b in zip(
+        onnx.act(planes, received, greedy=True), controller.act(planes, received, greedy=True), strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("messages", ["bitwise", "onehot"])
@@ -131,6 +158,28 @@ def test_the_file_carries_its_card(exported: tuple[Path, Path]) -> None:
     assert onnx.task == TINY
     inputs = {i.name: i.shape for i in onnx.session.get_inputs()}
     assert inputs == {"planes": ["N", 2, 4, 4], "received": ["N", 1, 4]}
+
+
+def test_the_card_says_who_hears_whom_and_what_each_tensor_holds(tmp_path: Path) -> None:
+    """A runtime without bitcomm (C++, a microcontroller) reads the wiring from the card, not from `task`'s defaults
+    (observes and recipients are null there when left at them), and how to fill and read each tensor."""
+    from bitcomm.envs.core import DCOL, DROW
+
+    run = make_checkpoint(tmp_path / "run", TWO_SLOTS, "onehot")
+    card = export_onnx(Controller.load(run), tmp_path / "policy.onnx")
+    assert card["task"]["env"]["observes"] is None  # the ring default, which only bitcomm knows how to fill in
+    assert card["observes"] == [1, 2, 0]
+    assert card["recipients"] == [[2], [0], [0]]
+    assert card["slot_senders"] == [[1, 2], [-1, -1], [0, -1]]  # agent 0 hears 1 and 2 (its two slots), 1 nobody
+    assert card["slot_senders"] == TWO_SLOTS.slot_senders.tolist()
+    assert card["move_deltas"] == [[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]] == np.stack([DROW, DCOL], 1).tolist()
+    assert set(card["encoding"]) == set(card["inputs"]) | set(card["outputs"])
+    assert "most significant first" in card["encoding"]["message_logits"]
+    on_file = json.loads(sidecar_path(tmp_path / "policy.onnx").read_text())
+    assert (
+        on_file["slot_senders"] == card["slot_senders"]
+        and on_file == OnnxController.load(tmp_path / "policy.onnx").metadata
+    )
 
 
 def test_the_runtime_needs_no_torch(exported: tuple[Path, Path]) -> None:

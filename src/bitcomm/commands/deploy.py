@@ -111,8 +111,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"deployed  ({task.env.n_agents} agent processes, UDP): {_line(deployed)}")
     print(f"simulator (same policy, same episodes):  {_line(simulated)}")
     print(
-        f"datagrams: {net.get('sent', 0)} sent, {net.get('dropped', 0)} dropped on purpose, {net.get('received', 0)} "
-        f"received, {net.get('missing', 0)} missing at their deadline, {net.get('late', 0)} late; "
+        f"datagrams: {net.get('sent', 0)} sent, {net.get('dropped', 0)} dropped on purpose, "
+        f"{net.get('send_failed', 0)} failed to send, {net.get('received', 0)} received, "
+        f"{net.get('missing', 0)} missing at their deadline, {net.get('late', 0)} late, "
+        f"{net.get('duplicate', 0)} duplicate, {net.get('foreign', 0)} foreign; "
         f"startup {result.startup_s:.1f} s, total {result.wall_s:.1f} s"
     )
     return 0

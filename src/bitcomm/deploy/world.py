@@ -58,8 +58,9 @@ class DeployResult:
     max_steps: int
     """The task's episode cap, the longest an outcome can last (the summary's interval stays within it)."""
     network: dict[str, int] = field(default_factory=dict)
-    """Datagram counts summed over agents: sent, dropped (on purpose), received, missing (at the deadline), late;
-    and `control_malformed`, the control lines the world ignored."""
+    """Datagram counts summed over agents: sent, dropped (on purpose), send_failed (refused by the system: lost),
+    received, missing (at the deadline), late (after their step was played), duplicate (repeats of a message held),
+    foreign (not this run's or unreadable); and `control_malformed`, the control lines the world ignored."""
     startup_s: float = 0.0
     wall_s: float = 0.0
 

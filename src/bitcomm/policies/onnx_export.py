@@ -20,7 +20,7 @@ from typing import Any
 
 import torch
 
-from bitcomm.envs.core import MOVE_NAMES
+from bitcomm.envs.core import DCOL, DROW, MOVE_NAMES
 from bitcomm.files import write_atomic, write_text_atomic
 from bitcomm.policies.controller import Controller
 from bitcomm.policies.onnx_policy import FORMAT, INPUTS, METADATA_KEY, OUTPUTS, VERSION, require, sidecar_path
@@ -29,11 +29,17 @@ OPSET = 17  # onnxruntime >= 1.14 runs it; the graph needs nothing newer
 
 
 def policy_card(controller: Controller) -> dict[str, Any]:
-    """What a robot needs to feed the exported graph and read its outputs, and where it came from."""
+    """What a robot needs to feed the exported graph and read its outputs, and where it came from: enough for a
+    runtime without bitcomm (C++, a microcontroller), so who hears whom is written out rather than left to
+    `task`'s defaults, and `encoding` says what each tensor holds."""
     import bitcomm
 
     task, head = controller.task, controller.policy.head
     S, K, slots = task.env.size, task.channel.bits, task.slots
+    if head.name == "bitwise":
+        message = "bit k is 1 where logit k > 0 (greedy), or with probability sigmoid(logit k)"
+    else:
+        message = "index argmax (greedy) or drawn from softmax, sent as its K bits, most significant first"
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -46,8 +52,21 @@ def policy_card(controller: Controller) -> dict[str, Any]:
         "slots": slots,
         "messages": head.name,
         "moves": list(MOVE_NAMES),
+        "move_deltas": [[int(r), int(c)] for r, c in zip(DROW, DCOL, strict=True)],
+        "observes": list(task.env.observed),
+        "recipients": [list(r) for r in task.recipient_lists],
+        "slot_senders": task.slot_senders.tolist(),
         "inputs": {INPUTS[0]: ["N", 2, S, S], INPUTS[1]: ["N", slots, K]},
         "outputs": {OUTPUTS[0]: ["N", len(MOVE_NAMES)], OUTPUTS[1]: ["N", head.out_features]},
+        "encoding": {
+            INPUTS[0]: "float32 0/1: [n, 0, row, col] is 1 at the agent's own cell, [n, 1, row, col] at the goal "
+            "cell it observes (agent observes[agent]'s goal)",
+            INPUTS[1]: "float32 0/1: [n, s] the K bits sender slot_senders[agent][s] sent task.channel.delay steps "
+            "before; zeros when none arrived (or the slot is -1, or the episode is younger than the delay)",
+            OUTPUTS[0]: "move argmax (greedy) or drawn from softmax; move m is moves[m], changing (row, col) by "
+            "move_deltas[m]",
+            OUTPUTS[1]: message,
+        },
         "opset": OPSET,
         "task": task.to_dict(),
     }
