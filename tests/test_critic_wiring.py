@@ -9,6 +9,7 @@ produces baselines that differ from the ones the spec names, and these tests fai
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,8 @@ FOUR = TaskConfig(EnvConfig(size=4, max_steps=12), ChannelConfig(bits=4))
 THREE = TaskConfig(
     EnvConfig(size=4, n_agents=3, max_steps=12), ChannelConfig(bits=BITS, recipients=((1, 2), (2,), (0,)), delay=2)
 )
+LOSSY = TaskConfig(EnvConfig(size=4, max_steps=12), ChannelConfig(bits=BITS, drop_prob=0.5))
+"""TWO with half the messages dropped: the improved estimator must see which."""
 
 
 class ProbeCritic(nn.Module):
@@ -100,10 +103,13 @@ def expected_advantages(learner: Learner, ro: Rollout, estimator: str) -> Advant
     return get_estimator(estimator)(batch, learner.cfg.gamma, task.channel.delay)
 
 
-@pytest.mark.parametrize("task", [TWO, THREE], ids=["two agents", "three agents, two recipients"])
+@pytest.mark.parametrize(
+    "task", [TWO, THREE, LOSSY], ids=["two agents", "three agents, two recipients", "dropped messages"]
+)
 @pytest.mark.parametrize("estimator", ["standard", "improved"])
 def test_each_advantage_comes_from_the_critic_query_the_spec_names(task: TaskConfig, estimator: str) -> None:
     learner, ro = learner_with_probe(task, estimator)
+    assert ro.dropped.any() == (task.channel.drop_prob > 0)
     got, want = learner.advantages(ro), expected_advantages(learner, ro, estimator)
     torch.testing.assert_close(got.returns, want.returns)
     torch.testing.assert_close(got.action, want.action, rtol=0, atol=1e-3)
@@ -127,6 +133,52 @@ def test_the_probe_tells_the_wrong_wirings_apart() -> None:
     swapped = learner.critic_values(state, moves, received.flip(1), *learner._action_queries())
     own_action = learner.critic_values(state, moves, received, torch.arange(2), torch.ones(2, 2, dtype=torch.bool))
     assert not torch.equal(right, swapped) and not torch.equal(right, own_action)
+
+
+@pytest.mark.parametrize(
+    ("task", "estimator"), [(TWO, "standard"), (THREE, "improved")], ids=["V1", "V2, two recipients"]
+)
+def test_the_critic_regresses_every_query_it_answers_on_the_return_of_its_step(
+    task: TaskConfig, estimator: str
+) -> None:
+    """SPEC section 3: the critics are trained by mean squared error against Q_t. An update step on the episodes
+    of some columns regresses every query of theirs (each agent's action baseline and, where a message has several
+    recipients, each sender's message baseline) on the return of the same step and episode."""
+    learner, ro = learner_with_probe(task, estimator)
+    adv = learner.advantages(ro)
+    cols = torch.tensor([4, 1])
+    recipients, n = task.recipient_lists, task.env.n_agents
+    errors = []
+    for t, b in zip(*ro.valid.nonzero(as_tuple=True), strict=True):
+        if b not in cols:
+            continue
+        moves = ro.moves[t, b][None]
+        for j in range(n):
+            heard = ro.received[t, b, j][None] if estimator == "standard" else None
+            v = probe_value(torch.tensor([j]), moves, torch.tensor([[k != j for k in range(n)]]), heard)
+            errors.append(v - adv.returns[t, b])
+        if any(len(r) > 1 for r in recipients):
+            for j in range(n):
+                not_recipients = torch.tensor([[k not in recipients[j] for k in range(n)]])
+                v = probe_value(torch.tensor([recipients[j][0]]), moves, not_recipients, None)
+                errors.append(v - adv.returns[t, b])
+    want = torch.cat(errors).double().pow(2).mean().item()
+    got = learner._step(ro, adv, cols, None)[0]["losses/value"]
+    assert got == pytest.approx(want, rel=1e-5)
+
+
+def test_adv_norm_divides_each_head_s_advantages_by_their_own_spread() -> None:
+    """`adv_norm`: the action and the message advantages are each divided by their standard deviation over the
+    valid steps, so both reach the policy with spread 1 and their signs and ratios unchanged."""
+    learner, ro = learner_with_probe(LOSSY, "improved")
+    raw = learner.advantages(ro)
+    learner.cfg = dataclasses.replace(learner.cfg, adv_norm=True)
+    normed = learner.advantages(ro)
+    for got, plain in ((normed.action, raw.action), (normed.message, raw.message)):
+        std = plain[ro.valid].std()
+        torch.testing.assert_close(got, plain / (std + 1e-8))
+        assert got[ro.valid].std().item() == pytest.approx(1.0, rel=1e-4)
+    assert not torch.allclose(raw.action[ro.valid].std(), raw.message[ro.valid].std())  # the check has power
 
 
 # ------------------------------------------------------------------------------------------------ SPEC section 7

@@ -346,8 +346,20 @@ def stub_value(t: int, viewpoint: int, given: list[int]) -> float:
     return 1000 * t + 100 * (viewpoint + 1) + sum(2**k for k in given)
 
 
-def credit_by_hand(alive: torch.Tensor, dropped: torch.Tensor) -> Advantages:
-    """The improved estimator's advantages on the hand case (agents a, b, c; `alive` and `dropped` (T, 1, 3))."""
+class StubCriticV1(StubCritic):
+    """`StubCritic` that also reads the judged agent's inbox (one 1-bit slot): + 50 when it holds a 1."""
+
+    with_message = True
+
+    def forward(self, state: torch.Tensor, viewpoint: torch.Tensor, actions: Any, given: torch.Tensor, rec: Any) -> Any:
+        return super().forward(state, viewpoint, actions, given, None) + 50 * rec[:, 0, 0].float()
+
+
+def credit_by_hand(
+    alive: torch.Tensor, dropped: torch.Tensor, estimator: str = "improved", received: torch.Tensor | None = None
+) -> Advantages:
+    """The estimator's advantages on the hand case (agents a, b, c; `alive` and `dropped` (T, 1, 3); `received`
+    (T, 1, 3) the bit each agent's inbox holds, read by the standard estimator's V1)."""
     n, T, d = 3, CREDIT_T, 2
     rec = np.zeros((n, n), bool)
     rec[0, 1] = rec[0, 2] = True
@@ -355,15 +367,16 @@ def credit_by_hand(alive: torch.Tensor, dropped: torch.Tensor) -> Advantages:
         ("a", "b", "c"), (1, 1, 1), 1, 1, d, True, (2, 2, 2), np.zeros((n, 2)), np.zeros((n, 2)), 1, True,
         np.zeros(n, bool), rec,
     )  # fmt: skip
-    cfg = config(estimator="improved", gamma=0.5, adv_norm=False, channel={"bits": 1, "delay": d})
+    cfg = config(estimator=estimator, gamma=0.5, adv_norm=False, channel={"bits": 1, "delay": d})
     learner = EnvLearner(cfg, layout)
-    learner.critic = StubCritic()  # type: ignore[assignment]
+    learner.critic = StubCriticV1() if estimator == "standard" else StubCritic()  # type: ignore[assignment]
+    inbox = torch.zeros(T, 1, n, dtype=torch.uint8) if received is None else received.to(torch.uint8)
     rewards = torch.tensor([[1.0], [2.0], [3.0], [4.0], [5.0]])
     done, valid = torch.zeros(T, 1, dtype=torch.bool), torch.ones(T, 1, dtype=torch.bool)
     done[-1] = True
     z = torch.zeros(T, 1, n)
     ro = EnvRollout(
-        z[..., None], torch.zeros(T, 1, n, 1, 1, dtype=torch.uint8), torch.arange(T).float().view(T, 1, 1), alive,
+        z[..., None], inbox[..., None, None], torch.arange(T).float().view(T, 1, 1), alive,
         torch.zeros(T, 1, n, dtype=torch.long), torch.zeros(T, 1, n, 1, dtype=torch.uint8), z, z, dropped, rewards,
         done, valid, np.array([T]), np.array([15.0]),
     )  # fmt: skip
@@ -408,6 +421,41 @@ def test_a_message_sent_before_its_sender_left_is_credited_on_arrival_by_hand() 
     torch.testing.assert_close(adv.message[:, 0, 0], torch.tensor(m0))
     assert (adv.action[2:, 0, 0] == 0).all()  # absent: no action credit either
     assert adv.action[2, 0, 1].item() == pytest.approx(q[2] - v(2, 1, [2]))  # the absent agent 0 is not given
+
+
+def test_standard_credit_by_hand() -> None:
+    """Standard estimator (paper eq. 7): action and message of agent j at t share Q_t - V1(s_t, a_t^{-j}, m^{-j}),
+    V1 judging j with every other present agent's action given and j's own inbox; drops change nothing."""
+    q, v = CREDIT_Q, stub_value
+    alive = torch.ones(CREDIT_T, 1, 3, dtype=torch.bool)
+    alive[3:, 0, 2] = False
+    dropped = torch.zeros(CREDIT_T, 1, 3, dtype=torch.bool)
+    dropped[0, 0, 0] = True
+    received = torch.zeros(CREDIT_T, 1, 3, dtype=torch.bool)
+    received[2:, 0, 1] = True  # agent 1 hears a 1 from step 2 on; agents 0 and 2 hear zeros
+    adv = credit_by_hand(alive, dropped, "standard", received)
+    others = [[1, 2], [0, 2], [0, 1]]
+    want = torch.zeros(CREDIT_T, 3)
+    for t in range(CREDIT_T):
+        for j in range(3):
+            if alive[t, 0, j]:
+                given = [k for k in others[j] if alive[t, 0, k]]
+                want[t, j] = q[t] - v(t, j, given) - 50 * float(received[t, 0, j])
+    torch.testing.assert_close(adv.action[:, 0], want)
+    torch.testing.assert_close(adv.message[:, 0], want)
+
+
+def test_the_critic_step_regresses_on_the_returns_of_its_own_episodes() -> None:
+    """A minibatch's critic step (columns in any order) fits each of its steps' values to that step's Q_t."""
+    learner, ro = _batch(config(env_kwargs={"steps": 4}))
+    adv = learner.advantages(ro)
+    cols = torch.tensor([5, 2, 7])
+    it, ib = ro.valid[:, cols].nonzero(as_tuple=True)
+    with torch.no_grad():
+        values = learner.critic_values(ro, it, cols[ib])
+    want = (values - adv.returns[it, cols[ib], None]).pow(2).mean().item()
+    assert not torch.equal(adv.returns[:, cols], adv.returns[:, : len(cols)])  # the check has power
+    assert learner._critic_step(ro, adv, cols) == pytest.approx(want, rel=1e-5)
 
 
 def test_returns_are_the_estimators() -> None:

@@ -139,6 +139,18 @@ def test_two_episodes_in_a_column_and_padding() -> None:
     assert adv.message.tolist() == adv.action.tolist()
 
 
+def test_a_message_arriving_on_padding_gets_no_credit_even_where_no_step_says_done() -> None:
+    """Padding ends an episode as `done` does (the module's contract): a column of two valid steps, no done flag,
+    then padding with garbage (nan) rewards and baselines. Delay 2: the message of step 0 would arrive at step 2,
+    which is padding, so it gets 0 (not gamma^2 * (0 - nan)); delay 1: step 0's arrives at step 1 and is credited.
+    Q = [-1 + 0.5 * -0.5, -0.5, 0]."""
+    nan = float("nan")
+    rewards, done, valid = [[-1.0], [-0.5], [nan]], [[False], [False], [False]], [[True], [True], [False]]
+    batch = _batch(rewards, done, [[[0.0, 0.0]], [[0.0, 0.0]], [[nan, nan]]], valid=valid)
+    assert improved(batch, GAMMA, 2).message.tolist() == [[[0.0, 0.0]]] * 3
+    assert improved(batch, GAMMA, 1).message.tolist() == [[[-0.25, -0.25]], [[0.0, 0.0]], [[0.0, 0.0]]]
+
+
 def test_policy_gradient_loss_averages_over_valid_steps_and_detaches_advantages() -> None:
     logp_a = _t([[[-0.1, -0.2]], [[-5.0, -5.0]]]).requires_grad_()
     logp_m = _t([[[-1.0, -2.0]], [[float("nan"), -5.0]]]).requires_grad_()
