@@ -87,6 +87,9 @@ class Learner:
         self.estimator = get_estimator(cfg.estimator)
         rec = task.recipient_matrix
         self.single_recipient = bool((rec.sum(1) == 1).all())
+        # V2 answers a message's own baseline where a message has several recipients (with one it is the
+        # recipient's action baseline); the standard estimator reads no message baseline, so V1 is not asked
+        self.message_queries = cfg.estimator == "improved" and not self.single_recipient
         self.recipient_of = torch.from_numpy(rec.argmax(1))  # the (first) recipient of each sender
         self.not_recipient = torch.from_numpy(~rec)  # (n, n): [j, k] agent k's action may be given for j's message
         self.slot_senders = torch.from_numpy(task.slot_senders)
@@ -166,7 +169,8 @@ class Learner:
             b_message = b_action[:, :, self.recipient_of]
         else:
             b_message = torch.zeros(T, B, self.n)
-            b_message[it, ib] = self._values(state_feats, moves, received, *self._message_queries())
+            if self.message_queries:
+                b_message[it, ib] = self._values(state_feats, moves, received, *self._message_queries())
         return b_action, b_message
 
     def critic_loss(
@@ -177,13 +181,13 @@ class Learner:
         returns: torch.Tensor,
         features: BatchFeatures | None = None,
     ) -> torch.Tensor:
-        """MSE to Q_t `returns (T, B)` of every query the critic answers (action baselines, plus message
-        baselines when a message has several recipients) at the rollout's steps `(it, ib)`."""
+        """MSE to Q_t `returns (T, B)` of every query the critic answers (action baselines, plus, for the improved
+        estimator, message baselines when a message has several recipients) at the rollout's steps `(it, ib)`."""
         moves, received = ro.moves[it, ib], ro.received[it, ib]
         with update_precision(self.cfg.update_dtype):
             state_feats = self._state_features(ro, it, ib, features)
             values = [self._values(state_feats, moves, received, *self._action_queries())]
-            if not self.single_recipient:
+            if self.message_queries:
                 values.append(self._values(state_feats, moves, received, *self._message_queries()))
         return critic_mse(torch.cat(values, 1).float(), returns[it, ib])
 
