@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 
 from bitcomm.cli import build_parser, main
+from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
 FILE, READONLY, DIRECTORY = "<an existing file>", "<in a read-only folder>", "<an existing folder>"
 BAD: dict[str, list[str]] = {
@@ -309,3 +310,32 @@ def test_eval_batch_matches_the_evaluator() -> None:
     from bitcomm.policies.evaluation import EVAL_CHUNK
 
     assert EVAL_BATCH == EVAL_CHUNK
+
+
+def test_a_one_hot_policy_too_wide_to_play_that_many_episodes_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A one-hot policy acts on tables of 2^K per agent and episode (logits, softmax, cumulative sum, heard
+    slots): an evaluation of 4,096 episodes at 18 bits ran out of memory on 34 GB with a traceback, and a
+    training run's final evaluation only after the training. Every command that plays one counts them first."""
+    from bitcomm.commands import flags
+
+    run = str(tmp_path / "onehot")
+    argv = ["train", "--size", "4", "--bits", "10", "--messages", "onehot", "--max-steps", "16", "--num-envs", "16"]
+    assert main([*argv, "--episodes", "16", "--quiet", "--eval-episodes", "0", "--threads", "1", "--out", run]) == 0
+    task = TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=10))
+    need = flags.play_bytes(task, 4096, onehot=True)
+    assert need > 20 * flags.play_bytes(task, 4096)  # 134 MB of one-hot tables, 5 MB of planes
+    monkeypatch.setattr(flags, "available_bytes", lambda: need // 2)
+    refused = [
+        (["eval", run, "--episodes", "4096"], "episodes"),
+        (["sweep", run, "--param", "delay=1", "--episodes", "4096", "--out", str(tmp_path / "s")], "episodes"),
+        (["analyze", run, "--envs", "4096", "--out", str(tmp_path / "a")], "envs"),
+        (["deploy", run, "--episodes", "4096"], "episodes"),
+        ([*argv, "--episodes", "16", "--eval-episodes", "4096", "--out", str(tmp_path / "t")], "eval-episodes"),
+    ]
+    for command, flag in refused:
+        code, lines = run_cli(command, capsys)
+        assert code == 2 and len(lines) == 1, (command, lines)
+        assert f"invalid {flag}=4096" in lines[0] and "one-hot messages over 2^10 words" in lines[0], lines
+    assert not (tmp_path / "t").exists()  # refused before training

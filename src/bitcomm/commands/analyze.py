@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
     source = source_from_args(args)
     task = source.task_from_args(args)
-    check_play(task, "envs", args.envs, args.envs)
+    check_play(task, "envs", args.envs, args.envs, onehot=source.onehot())
     use_threads(args)
     samples = collect_messages(source.build(task, seed=args.seed), task, args.samples, args.envs, args.seed)
     report = analyze_samples(samples, task, source.label, args.seed)

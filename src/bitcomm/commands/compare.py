@@ -138,7 +138,7 @@ def check_study(cfg: CompareConfig) -> None:
     for r in runs:
         train = typing.cast("TrainConfig", r.train)  # a grid study's runs are on the grid
         check_train(train, processes=min(cfg.jobs, len(runs)))
-        check_eval(train.task, cfg.eval_episodes)
+        check_eval(train.task, cfg.eval_episodes, train.model.messages == "onehot", "eval-episodes")
 
 
 def _common(args: argparse.Namespace) -> dict[str, Any]:

@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     episodes = args.episodes
     source = source_from_args(args)
     task = source.task_from_args(args)
-    check_eval(task, episodes)
+    check_eval(task, episodes, onehot=source.onehot())
     use_threads(args)
     source.build(task)  # a policy that cannot be built fails here, with one line, before any process starts
     log = sys.stderr if args.json else sys.stdout

@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
         return env_train.evaluate(args)
     controller = Controller.load(args.run_path, seed=args.seed)
     task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", strict=True)
-    check_eval(task, args.episodes)
+    check_eval(task, args.episodes, onehot=controller.messages == "onehot")
     result = evaluate_controller(controller, args.episodes, args.seed, args.greedy, task)
     print_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
     return 0

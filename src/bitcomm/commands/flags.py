@@ -162,13 +162,17 @@ def available_bytes() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-def play_bytes(task: TaskConfig, episodes: int, steps: int = 1) -> int:
+def play_bytes(task: TaskConfig, episodes: int, steps: int = 1, onehot: bool = False) -> int:
     """Memory of `episodes` played side by side, `steps` of them kept: the uint8 observation planes and
-    state (4n S^2), messages in flight (delay n K) and the float32 copies the networks read (x4, twice)."""
+    state (4n S^2), messages in flight (delay n K) and the float32 copies the networks read (x4, twice).
+    `onehot`: a policy with one-hot messages also holds, at each acting step, float32 tables of 2^K per
+    agent: its logits, their softmax and cumulative sum, and one per slot it hears (what an evaluation of
+    4,096 episodes at 18 bits ran out of memory on: 34 GB)."""
     env, ch = task.env, task.channel
     per_step = 4 * env.n_agents * env.cells * 9
     in_flight = ch.delay * env.n_agents * ch.bits * task.slots
-    return episodes * (steps * per_step + in_flight)
+    acting = env.n_agents * ch.messages * (3 + task.slots) * 4 if onehot else 0
+    return episodes * (steps * per_step + in_flight + acting)
 
 
 def onehot_bytes(task: TaskConfig, hidden: int, message_hidden: int) -> int:
@@ -195,14 +199,17 @@ def check_memory(flag: str, value: object, need: int, what: str) -> None:
         )
 
 
-def check_play(task: TaskConfig, flag: str, value: object, episodes: int, steps: int = 1) -> None:
-    """`check_memory` for `episodes` played side by side on `task`."""
-    check_memory(flag, value, play_bytes(task, episodes, steps), f"{episodes} episodes side by side on this task")
+def check_play(task: TaskConfig, flag: str, value: object, episodes: int, steps: int = 1, onehot: bool = False) -> None:
+    """`check_memory` for `episodes` played side by side on `task` (`onehot`: by a policy with one-hot messages)."""
+    what = f"{episodes} episodes side by side on this task"
+    if onehot:
+        what += f" with one-hot messages over 2^{task.channel.bits} words"
+    check_memory(flag, value, play_bytes(task, episodes, steps, onehot), what)
 
 
-def check_eval(task: TaskConfig, episodes: int) -> None:
-    """`check_play` for an evaluation of `episodes` (played `EVAL_BATCH` at a time)."""
-    check_play(task, "episodes", episodes, min(episodes, EVAL_BATCH))
+def check_eval(task: TaskConfig, episodes: int, onehot: bool = False, flag: str = "episodes") -> None:
+    """`check_play` for an evaluation of `episodes` (played `EVAL_BATCH` at a time), asked for by `flag`."""
+    check_play(task, flag, episodes, min(episodes, EVAL_BATCH), onehot=onehot)
 
 
 def check_train(cfg: TrainConfig, processes: int = 1) -> None:

@@ -46,11 +46,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run)
 
 
-def check_points(task: TaskConfig, params: dict[str, tuple[float, ...]], episodes: int) -> None:
-    """Every point's task built (so a bad value fails now, not after the points before it) and its memory."""
+def check_points(task: TaskConfig, params: dict[str, tuple[float, ...]], episodes: int, onehot: bool = False) -> None:
+    """Every point's task built (so a bad value fails now, not after the points before it) and its memory
+    (`onehot`: a policy swept sends one-hot messages)."""
     for name, values in params.items():
         for value in values:
-            check_eval(with_param(task, name, value), episodes)
+            check_eval(with_param(task, name, value), episodes, onehot)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
         raise bad_value("param", args.param, "each NAME at most once (its values in one --param NAME=V1,V2,...)")
     sources = sources_from_args(args)
     task = sources[0].task_from_args(args)  # a learned policy's task when RUN is given; others join it
-    check_points(task, params, episodes)
+    check_points(task, params, episodes, any(source.onehot() for source in sources))
     use_threads(args)
     points = run_sweep(sources, task, params, episodes, args.seed)
     out = Path(args.out)

@@ -24,6 +24,7 @@ from bitcomm.commands.flags import (
     MAX_TRAIN_EPISODES,
     SEED,
     add_threads_flag,
+    check_eval,
     check_train,
     integer,
     out_dir,
@@ -152,6 +153,8 @@ def run(args: argparse.Namespace) -> int:
         raise bad_value("workers", args.workers, "acts only with --mode a3c or --backend ray")
     cfg = execution(args, cfg)
     check_train(cfg)
+    if args.eval_episodes:  # the final evaluation's, before training rather than after it
+        check_eval(cfg.task, args.eval_episodes, cfg.model.messages == "onehot", "eval-episodes")
     threads = use_threads(args)
     print(
         f"run folder: {out}{' (resumed)' if args.resume else ''}; torch threads: {threads or 'OMP_NUM_THREADS'}",

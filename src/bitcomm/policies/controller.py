@@ -49,6 +49,11 @@ class Controller:
     def task(self) -> TaskConfig:
         return self.policy.task
 
+    @property
+    def messages(self) -> str:
+        """The message head, "bitwise" or "onehot" (as `OnnxController.messages`)."""
+        return self.policy.cfg.messages
+
     @classmethod
     def load(cls, path: str | Path, seed: int = 0) -> Controller:
         """From a run folder (its latest checkpoint) or a checkpoint file; `seed` drives sampling."""

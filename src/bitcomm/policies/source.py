@@ -156,6 +156,17 @@ class PolicySource:
             return OnnxController.load(str(self.onnx)).task
         return TaskConfig()
 
+    def onehot(self) -> bool:
+        """Whether the policy sends one-hot messages: acting then holds tables of 2^K per agent and episode
+        (`bitcomm.commands.flags.play_bytes`)."""
+        if self.name == "run":
+            return load_controller(self.run).messages == "onehot"  # type: ignore[no-any-return]
+        if self.name == "onnx":
+            from bitcomm.policies.onnx_policy import OnnxController
+
+            return OnnxController.load(str(self.onnx)).messages == "onehot"
+        return False
+
     def task_from_args(self, args: argparse.Namespace) -> TaskConfig:
         """The task to run: `base_task()` changed by the task flags the user gave."""
         learned = self.name in ("run", "onnx")
