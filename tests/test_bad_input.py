@@ -40,7 +40,7 @@ BAD_TEXT: dict[str, list[str]] = {
     "--observes": ["0,0", "5,0", "a,b", "1"],
     "--recipients": ["5;0", "0;1", "x", "1,1;0"],
     "--sizes": ["1000", "1", "abc", "", "10,-4"],
-    "--stages": ["nonsense", "spread:0", "-5"],
+    "--stages": ["nonsense", "spread:0", "-5", "²", "spread:²", "16,16"],  # "²" is a digit to str.isdigit, not to int()
     "--techniques": ["nonsense", "", "improved-bitwise,improved-bitwise"],
     "--vary": ["nonsense", "lr=", "lr=inf", "lr=abc", "hidden=-8", "delay=300", "flip_prob=2"],
     "--param": ["nonsense", "delay=", "delay=300", "flip_prob=nan", "act_delay=abc", "delay=1.5"],
