@@ -26,11 +26,12 @@ from bitcomm.cli import build_parser, main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 
 FILE, READONLY, DIRECTORY = "<an existing file>", "<in a read-only folder>", "<an existing folder>"
+PIPE = "<a named pipe>"  # a device as well: written by renaming a file over it, /dev/null was replaced (as root)
 BAD: dict[str, list[str]] = {
     "integer": ["-1", "0", "1000000000000", "abc", "2.5", "nan"],
     "number": ["-1", "0", "nan", "inf", "-inf", "1e300", "abc"],
-    "out_dir": [FILE, READONLY, ""],
-    "out_file": [DIRECTORY, READONLY, ""],
+    "out_dir": [FILE, READONLY, "", PIPE],
+    "out_file": [DIRECTORY, READONLY, "", PIPE],
     "choice": ["nonsense"],
     "positional": ["no/such/run", FILE],
 }
@@ -40,7 +41,7 @@ BAD_TEXT: dict[str, list[str]] = {
     "--observes": ["0,0", "5,0", "a,b", "1"],
     "--recipients": ["5;0", "0;1", "x", "1,1;0"],
     "--sizes": ["1000", "1", "abc", "", "10,-4"],
-    "--stages": ["nonsense", "spread:0", "-5"],
+    "--stages": ["nonsense", "spread:0", "-5", "²", "spread:²", "16,16"],  # "²" is a digit to str.isdigit, not to int()
     "--techniques": ["nonsense", "", "improved-bitwise,improved-bitwise"],
     "--vary": ["nonsense", "lr=", "lr=inf", "lr=abc", "hidden=-8", "delay=300", "flip_prob=2"],
     "--param": ["nonsense", "delay=", "delay=300", "flip_prob=nan", "act_delay=abc", "delay=1.5"],
@@ -131,6 +132,9 @@ KNOWN: list[tuple[list[str], str]] = [
     (["deploy", "--timeout", "inf"], "timeout"),
     (["render", "--fps", "nan"], "fps"),
     (["render", "--out", "episode"], "out"),  # the animation is a GIF: a name without .gif was a PIL traceback
+    (["render", "--fps", "1e-300"], "fps"),  # a frame of 10^300 s: a PIL OverflowError (at most 655 s in a GIF)
+    (["sweep", "--param", "delay=nan"], "delay"),  # int(nan) of a whole-number parameter: a traceback
+    (["sweep", "--param", "act_delay=1,inf"], "act_delay"),
     (["baseline", "--seed", "-1"], "seed"),
     (["baseline", "--size", "100000"], "size"),
     (["baseline", "--bits", "4"], "bits"),  # the oracle needs 7 bits on a 10x10 grid
@@ -200,7 +204,8 @@ def places(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, tiny_run: str) -> It
     locked = tmp_path / "locked"
     locked.mkdir()
     locked.chmod(stat.S_IRUSR | stat.S_IXUSR)
-    yield {FILE: "file.txt", DIRECTORY: "folder", READONLY: "locked/out", RUN: tiny_run}
+    os.mkfifo(tmp_path / "pipe.gif")  # named as render's --out must be
+    yield {FILE: "file.txt", DIRECTORY: "folder", READONLY: "locked/out", PIPE: "pipe.gif", RUN: tiny_run}
     locked.chmod(stat.S_IRWXU)
 
 

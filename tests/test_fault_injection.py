@@ -191,6 +191,7 @@ CASES: dict[str, Callable[[Path], str]] = {
     "latest: absolute path": _latest('{"checkpoint": "/etc/passwd"}'),
     "metadata: version abc": _metadata(version="abc"),
     "metadata: version -1": _metadata(version="-1"),
+    "metadata: version a superscript digit": _metadata(version="²"),  # a digit to str.isdigit, not to int()
     "metadata: version from the future": _metadata(version="99"),
     "metadata: no format": _metadata(format=None),
     "metadata: config not JSON": _metadata(config="{oops"),

@@ -789,3 +789,16 @@ def test_acting_reads_a_message_head_of_its_own_once_per_episode_as_each_step_wo
         _, logits = net(ro.planes[it, ib].flatten(0, 1), ro.received[it, ib].flatten(0, 1))
     logp = net.head.log_prob(logits, ro.bits[it, ib].flatten(0, 1)).view(it.shape[0], -1)
     assert torch.allclose(logp, ro.logp_message[it, ib], atol=1e-6)
+
+
+def test_a_clip_wider_than_float32_clips_nothing() -> None:
+    """`--clip 1e300 --epochs 2` (a huge clip: no clipping) was a RuntimeError: 1 + 1e300 is no float32 bound."""
+    from bitcomm.learn.estimators import Advantages
+    from bitcomm.learn.objectives import clipped_policy_loss
+
+    gen = torch.Generator().manual_seed(0)
+    logp, old, a = (torch.randn(4, 3, 2, generator=gen) for _ in range(3))
+    adv, valid = Advantages(a, a, torch.zeros(4, 3)), torch.ones(4, 3, dtype=torch.bool)
+    unclipped = -((torch.exp(logp - old) * a) * 2).sum() / valid.sum()
+    loss = clipped_policy_loss(logp, logp, old, old, adv, valid, clip=1e300)
+    assert torch.isfinite(loss) and torch.allclose(loss, unclipped)

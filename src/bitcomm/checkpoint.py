@@ -401,7 +401,7 @@ def _version(file: Path, meta: dict[str, str]) -> int:
     if meta.get("format") != FORMAT:
         raise _bad(file, "not a bitcomm checkpoint (no bitcomm metadata)")
     text = meta.get("version", "")
-    if not text.isdigit():
+    if not text.isdecimal():  # not isdigit: int() refuses a digit such as "²"
         raise _bad(file, f"metadata version {text!r} is not a whole number")
     if int(text) > VERSION:
         raise _bad(file, f"format version {text} is newer than this bitcomm reads ({VERSION})")

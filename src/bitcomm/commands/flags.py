@@ -38,6 +38,8 @@ MAX_FRAMES = 1000
 """`render` draws one frame per step of an episode truncated at `--max-steps`: at most 1,000 frames."""
 MAX_FPS = 100.0
 """A GIF frame lasts a whole number of 10 ms ticks: more than 100 frames per second cannot be shown."""
+MIN_FPS = 0.01
+"""And at most 65,535 ticks (655 s), a 16-bit count: 100 s a frame is the slowest `render --fps` makes."""
 MAX_SECONDS = 7 * 24 * 3600.0
 """Timeouts in seconds: a week at most."""
 MAX_DEADLINE_MS = 60_000.0
@@ -127,13 +129,15 @@ def out_dir(text: str) -> Path:
 
 
 def out_file(text: str) -> Path:
-    """An argparse type: a file to write (its folder made if missing), refused if a folder or read-only."""
+    """An argparse type: a file to write (its folder made if missing), refused if a folder, a device or read-only."""
     path = _user_path(text)
     problem = None
     if not text.strip():
         problem = "must not be empty"
     elif path.is_dir():
         problem = "is a folder; give a file name"
+    elif path.exists() and not path.is_file():  # written by renaming a new file over it: a device would be gone
+        problem = "is not a regular file (a device, pipe or socket); give a file name"
     elif path.exists() and not (path.stat().st_mode & 0o222 and os.access(path, os.W_OK)):
         problem = "is a read-only file"
     else:

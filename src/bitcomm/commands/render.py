@@ -6,7 +6,17 @@ from __future__ import annotations
 import argparse
 
 from bitcomm.commands.common import add_task_flags
-from bitcomm.commands.flags import MAX_FPS, MAX_FRAMES, SEED, add_threads_flag, gif_file, number, out_dir, use_threads
+from bitcomm.commands.flags import (
+    MAX_FPS,
+    MAX_FRAMES,
+    MIN_FPS,
+    SEED,
+    add_threads_flag,
+    gif_file,
+    number,
+    out_dir,
+    use_threads,
+)
 from bitcomm.errors import bad_value
 from bitcomm.policies.source import add_policy_flags, source_from_args
 
@@ -29,7 +39,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=SEED, default=0, help="picks the episode (default %(default)s)")
     p.add_argument(
         "--fps",
-        type=number(0.0, MAX_FPS, strict=True),
+        type=number(MIN_FPS, MAX_FPS),
         default=2.0,
         help="frames per second of the GIF (default %(default)s)",
     )

@@ -191,7 +191,8 @@ def clipped_policy_loss(
 
     def part(logp: torch.Tensor, old: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         ratio = torch.exp(logp - old)
-        return torch.minimum(ratio * a, ratio.clamp(1 - clip, 1 + clip) * a)
+        most = torch.finfo(ratio.dtype).max  # a wider clip (--clip 1e300: none) is no float32 bound, a RuntimeError
+        return torch.minimum(ratio * a, ratio.clamp(max(1 - clip, -most), min(1 + clip, most)) * a)
 
     per_step = (part(logp_action, old_action, adv.action) + part(logp_message, old_message, adv.message)).sum(-1)
     return -torch.where(valid, per_step, 0.0).sum() / valid.sum().clamp(min=1)

@@ -10,6 +10,7 @@ panel per parameter.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,7 +74,7 @@ def parse_param(text: str) -> tuple[str, tuple[float, ...]]:
     if len(set(parsed)) != len(parsed):
         raise bad_value("param", text, "values repeat")
     if kind is int:
-        if any(v != int(v) for v in parsed):
+        if not all(math.isfinite(v) and v == int(v) for v in parsed):  # int() of NaN or inf is a traceback
             raise bad_value(name, values, "must be whole numbers")
         return name, tuple(int(v) for v in parsed)
     return name, parsed

@@ -131,12 +131,15 @@ def parse_stages(text: str) -> str | int | tuple[int, ...]:
         return text
     if text.startswith("spread:"):
         count = text.removeprefix("spread:")
-        if count.isdigit() and int(count) >= 1:
+        if count.isdecimal() and int(count) >= 1:  # not isdigit: "²" is a digit that int() refuses
             return int(count)
     else:
         values = [v.strip() for v in text.split(",") if v.strip()]
-        if values and all(v.isdigit() for v in values):
-            return tuple(int(v) for v in values)
+        if values and all(v.isdecimal() for v in values):
+            episodes = tuple(int(v) for v in values)
+            if len(set(episodes)) != len(episodes):  # the same stage measured twice, its rows printed twice
+                raise bad_value("stages", text, "an episode count repeats; give each once")
+            return episodes
     raise bad_value("stages", text, "expected all, latest, spread:N or a list of episode counts E1,E2,...")
 
 
