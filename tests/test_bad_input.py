@@ -102,8 +102,8 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
             "aux-coef",
         )
     },
-    # a finite huge rate is a choice (the run's NaN guard stops it), not a typo
-    **{(ALL, f"--{name}"): {"1e300"} for name in ("lr", "critic-lr", "map-lr")},
+    # a rate of 1e300 is refused: the optimizers step in float32, and a rate float32 cannot hold was a traceback
+    # from inside Adam on the wrapped env (a huge rate it can hold is a choice, which the NaN guard stops)
 }
 
 RUN = "<a tiny trained run>"

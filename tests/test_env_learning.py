@@ -594,6 +594,7 @@ def test_evaluating_a_run_closes_the_envs_it_made(tmp_path: Path) -> None:
         (["--env", SPEC, "--size", "5"], "a grid option, not used with --env"),
         (["--env", SPEC, "--agents", "3"], "a grid option, not used with --env"),
         (["--env", SPEC, "--recipe", "supervised"], "not used with --env"),
+        (["--env", SPEC, "--lr", "1e300"], "the largest float32"),  # was a traceback from inside Adam
     ],
 )
 def test_cli_errors_are_one_line(
@@ -639,6 +640,19 @@ def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: p
     checkpoint = str(Path(out) / "checkpoints" / "ckpt_000000016.safetensors")
     assert main(["eval", checkpoint, "--episodes", "10"]) == 0
     assert "10 episodes, mean team return" in capsys.readouterr().out
+
+
+def test_resuming_a_grid_run_with_env_says_what_the_run_is(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Not "its config does not fit this bitcomm (KeyError: 'channel')"."""
+    grid = str(tmp_path / "grid")
+    assert main(["train", "--size", "3", "--bits", "4", "--episodes", "16", "--num-envs", "16", "--out", grid,
+                 "--quiet", "--eval-episodes", "0", "--threads", "1"]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(["train", "--env", SPEC, "--resume", "--out", grid, "--episodes", "32", "--quiet"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"bitcomm train: error: invalid out={grid!r}: a run of the grid task, not of a wrapped env; resume it without "
+        "--env"
+    ]
 
 
 # ---------------------------------------------------------------------------------------------- learning

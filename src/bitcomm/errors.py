@@ -62,3 +62,14 @@ def check_number(name: str, value: object, least: float, strict: bool = False, f
         raise bad_value(name.replace("_", "-"), value, f"must be a {'finite ' if finite else ''}number {bound}")
     if finite and not math.isfinite(value):  # type: ignore[arg-type]
         raise bad_value(name.replace("_", "-"), value, f"must be a finite number {bound}")
+
+
+FLOAT32_MAX = 3.4028234663852886e38
+
+
+def check_rate(name: str, value: object) -> None:
+    """A learning rate: a number > 0 that float32 holds (the optimizers step in float32; a larger one is a
+    traceback from inside Adam, not a run that diverges)."""
+    check_number(name, value, 0.0, strict=True)
+    if value > FLOAT32_MAX:  # type: ignore[operator]
+        raise bad_value(name.replace("_", "-"), value, f"must be at most {FLOAT32_MAX:.4g}, the largest float32")

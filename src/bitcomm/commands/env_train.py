@@ -82,12 +82,15 @@ def env_config_from_args(args: argparse.Namespace) -> EnvTrainConfig:
 def resumed_env_config(args: argparse.Namespace, out: Path) -> EnvTrainConfig:
     """The config of the wrapped-env run in `out`, with the budget, the env's workers and how often it saves as typed
     now; one line for any other flag typed with a value the run was not trained with."""
-    from bitcomm.checkpoint import resolve
+    from bitcomm.checkpoint import is_env_config, read_config, resolve
     from bitcomm.envs.factory import check_recorded_env
     from bitcomm.learn.env_config import EnvTrainConfig
-    from bitcomm.learn.run_folder import resume_config
+    from bitcomm.learn.run_folder import check_start, resume_config
     from bitcomm.policies.source import given_task_flags
 
+    check_start(out, resume=True)
+    if not is_env_config(read_config(out)):  # not "its config does not fit" from a missing key of an env's config
+        raise bad_value("out", str(out), "a run of the grid task, not of a wrapped env; resume it without --env")
     cfg = resume_config(out, EnvTrainConfig.from_dict, args.episodes)
     check_recorded_env(cfg.env, resolve(out), getattr(args, "env", None))  # before its module is imported
     typed = {**given_task_flags(args), **env_overrides(args)}  # the grid's task flags are refused below, by name

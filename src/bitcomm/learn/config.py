@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig
-from bitcomm.errors import ConfigError, bad_value, check_instance, check_int, check_number, is_number
+from bitcomm.errors import ConfigError, bad_value, check_instance, check_int, check_number, check_rate, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
 from bitcomm.learn.recipes import AUXILIARY, DEFAULT_RECIPE, NO_SPARE_WORDS, RECIPES, WIDE_MESSAGES
@@ -280,8 +280,9 @@ class TrainConfig:
             check_int(name, getattr(self, name), 1)
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
-        for name in ("lr", "critic_lr", "map_lr", "max_grad_norm"):
-            check_number(name, getattr(self, name), 0.0, strict=True)
+        for name in ("lr", "critic_lr", "map_lr"):
+            check_rate(name, getattr(self, name))
+        check_number("max_grad_norm", self.max_grad_norm, 0.0, strict=True)
         if not (is_number(self.gamma) and 0.0 < self.gamma <= 1.0):
             raise bad_value("gamma", self.gamma, "must be in (0, 1]")
         for name in (

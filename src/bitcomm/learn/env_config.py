@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bitcomm.envs.subproc_vector import check_workers
-from bitcomm.errors import bad_value, check_int, check_number, is_number
+from bitcomm.errors import bad_value, check_int, check_number, check_rate, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.policies.heads import MESSAGE_HEADS, check_marginal_bits
 
@@ -96,8 +96,9 @@ class EnvTrainConfig:
         check_workers(self.env_workers, self.num_envs, 0)
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
-        for name in ("lr", "critic_lr", "max_grad_norm"):
-            check_number(name, getattr(self, name), 0.0, strict=True)
+        for name in ("lr", "critic_lr"):
+            check_rate(name, getattr(self, name))
+        check_number("max_grad_norm", self.max_grad_norm, 0.0, strict=True)
         for name in ("clip", "entropy_action", "entropy_message", "entropy_message_marginal", "checkpoint_seconds"):
             check_number(name, getattr(self, name), 0.0)
         check_marginal_bits(self.entropy_message_marginal, self.channel.bits)
