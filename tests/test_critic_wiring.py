@@ -349,6 +349,31 @@ def test_the_recipe_tells_nearby_goals_apart_only_where_the_channel_has_words_to
         assert make_train_config("reinforced", task, message_divergence=0.5, held_messages=0.1).held_messages == 0.1
 
 
+@pytest.mark.parametrize(
+    ("size", "bits", "cut", "supervised"),
+    [
+        (4, 4, 32, 64),
+        (10, 7, 32, 64),
+        (16, 8, 32, 64),
+        (17, 9, 32, 64),
+        (18, 9, 54, 64),
+        (32, 10, 96, 64),
+        (34, 11, 102, 102),
+    ],
+)
+def test_the_recipe_s_training_cut_lets_an_agent_cross_the_grid(
+    size: int, bits: int, cut: int, supervised: int
+) -> None:
+    """A cut shorter than the corner-to-corner path (2 (size - 1) moves) ends episodes the oracle itself could not
+    finish: there a recipe's cut is 3 steps per cell of the grid's side. A typed cut stands; `paper` plays whole
+    episodes."""
+    task = TaskConfig(EnvConfig(size=size), ChannelConfig(bits=bits))
+    assert make_train_config("reinforced", task).train_max_steps == cut
+    assert make_train_config("supervised", task).train_max_steps == supervised
+    assert make_train_config("paper", task).train_max_steps == 0
+    assert make_train_config("reinforced", task, train_max_steps=24).train_max_steps == 24
+
+
 def test_greedy_senders_keep_their_fraction_of_the_run_where_a_batch_cannot_hold_it() -> None:
     one = make_train_config("reinforced", TWO, num_envs=1, minibatches=1, episodes=1000)  # the paper's batches
     assert [one.greedy_sender_episodes(e) for e in range(500, 506)] == [0, 1, 0, 1, 0, 1]

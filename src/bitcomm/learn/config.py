@@ -63,8 +63,9 @@ class TrainConfig:
     episodes: int = 100_000
     """Budget: environment episodes to play."""
     train_max_steps: int = 0
-    """Truncate training episodes after this many steps (0: the task's `max_steps`). Evaluation
-    keeps the task's own limit. Early on every episode runs to the limit, so a short one buys more
+    """Truncate training episodes after this many steps (0: the task's `max_steps`; where a recipe's cut is shorter
+    than a corner-to-corner path, from 18x18 under reinforced, it is 3 steps per cell of the grid's side: 96 at
+    32x32). Evaluation keeps the task's own limit. Early on every episode runs to the limit, so a short one buys more
     updates per second; with a small gamma the returns it cuts short lose little."""
     seed: int = 0
     num_envs: int = 128
@@ -432,6 +433,14 @@ def oracle_refusal(task: TaskConfig) -> ConfigError | None:
     return None
 
 
+LONG_GRID_STEPS_PER_SIDE = 3
+"""Where a recipe's training cut is shorter than the corner-to-corner path, 2 (size - 1) moves (so that it ends
+episodes the oracle itself could not finish: from 18x18 with the default's 32 steps), the cut becomes this many steps
+per cell of the grid's side, 96 at 32x32, what the 32x32 study trained with. Measured at 32x32 (K = 10, seed 0,
+200,000 episodes, 1,000 evaluation episodes): cut at 32 steps 153.6 sampled, at 64 60.3, at 96 47.1; at 16x16 the
+default's 32 stays (48 was 2-3% longer sampled on seeds 0 and 1, and slower): docs/tuning.md session 53."""
+
+
 def spare_words(task: TaskConfig) -> bool:
     """Whether the channel has more words than the grid has goal cells (2^K > size^2, K at most
     MAX_MARGINAL_BITS, where the bonus for telling nearby goals apart can be evaluated): where it has none, every
@@ -453,6 +462,8 @@ def recipe_values(recipe: str, task: TaskConfig, message_reads: str | None = Non
         values["senders_wait_below"] = 0.0  # no level to wait for
     if not spare_words(task) or (message_reads or values.get("message_reads")) != "observed":
         values.update(NO_SPARE_WORDS)
+    if 0 < values.get("train_max_steps", 0) < 2 * (task.env.size - 1):
+        values["train_max_steps"] = LONG_GRID_STEPS_PER_SIDE * task.env.size
     return values
 
 
