@@ -7,9 +7,9 @@ Plain data with no heavy imports, so the command line can list the names without
   estimator's policy-gradient term plus the entropy terms; critics see the full state (as the
   paper's V1/V2 do). What it adds to the paper is engineering that leaves the estimators' role
   intact: batched synchronous updates with PPO-style reuse and clipping, advantage normalisation,
-  gamma 0.5, shorter training episodes, learning rates decayed to zero over the budget
-  (`anneal_lr`), observation features and a network shaped for the grid, in place of the
-  per-message entropy bonus one on the batch's average message distribution
+  gamma 0.5, shorter training episodes (32 steps; from 18x18, 3 per cell of the grid's side), learning
+  rates decayed to zero over the budget (`anneal_lr`), observation features and a network shaped for
+  the grid, in place of the per-message entropy bonus one on the batch's average message distribution
   (`entropy_message_marginal`, session 18), which keeps two goals from sharing a code, and the move
   regularisers decayed to zero with the rates (`anneal_move_entropy`, session 19), so that greedy
   moves end as good as sampled ones; since session 35 a message head that reads only the goal the
