@@ -124,6 +124,11 @@ def test_greedy_actions_equal_the_controllers(tmp_path: Path, messages: str) -> 
     assert move.shape == () and bits.shape == (4,) and bits.dtype == np.uint8
     with pytest.raises(ConfigError, match="expected"):
         onnx.act(planes[:, :, :3], received)
+    for bad in (controller, onnx):  # a robot's 0.5 or NaN is one line from either, not a silent cast or read
+        with pytest.raises(ConfigError, match=r"^invalid planes value 0\.5: every entry must be 0 or 1$"):
+            bad.act(planes * 0.5, received)
+        with pytest.raises(ConfigError, match=r"^invalid received_bits value nan: every entry must be 0 or 1$"):
+            bad.act(planes, np.where(received == 1, np.nan, 0.0))
 
 
 @pytest.mark.parametrize("messages", ["bitwise", "onehot"])
@@ -132,6 +137,7 @@ def test_sampling_follows_the_policy_distribution(tmp_path: Path, messages: str)
     export_onnx(Controller.load(run), tmp_path / "policy.onnx")
     onnx = OnnxController.load(tmp_path / "policy.onnx", seed=3)
     planes, received = random_inputs(TINY, 1)
+    planes = (planes > 0.5).astype(np.float32)  # act reads 0/1 planes, as the env gives them
     draws = 4000
     moves, bits = onnx.act(np.repeat(planes, draws, 0), np.repeat(received, draws, 0))
     move_logits, message_logits = (torch.from_numpy(x[0]) for x in onnx.logits(planes, received))

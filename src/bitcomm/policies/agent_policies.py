@@ -40,7 +40,8 @@ def agent_batch(planes: np.ndarray, received: np.ndarray, task: TaskConfig) -> t
     """`(planes (N, 2, S, S), received (N, slots, K), single)` from the inputs of one agent or of N agents.
 
     `single` says a leading axis was added (one agent's `(2, S, S)` and `(slots, K)`), so a controller
-    can answer in the shape it was asked; shapes that fit neither stop with one error line.
+    can answer in the shape it was asked; shapes that fit neither, or an entry other than 0 or 1, stop with one
+    error line.
     """
     planes, received = np.asarray(planes), np.asarray(received)
     single = planes.ndim == 3
@@ -52,6 +53,10 @@ def agent_batch(planes: np.ndarray, received: np.ndarray, task: TaskConfig) -> t
             f"invalid input shapes planes={planes.shape}, received_bits={received.shape}: "
             f"expected (N, 2, {S}, {S}) and (N, {slots}, {K}) (or without N for one agent)"
         )
+    for name, x in (("planes", planes), ("received_bits", received)):
+        off = (x != 0) & (x != 1)  # the networks read 0/1: a 0.5 or a NaN would be cast or read without a word
+        if off.any():
+            raise ConfigError(f"invalid {name} value {x[off].flat[0].item()!r}: every entry must be 0 or 1")
     return planes, received, single
 
 
