@@ -109,7 +109,7 @@ def test_a_flood_does_not_hold_an_agent_past_its_deadline() -> None:
     assert got == {} and inbox.stats["foreign"] > 0 and inbox.stats["received"] == 0
 
 
-@pytest.mark.parametrize("world", ["localhost", "127.0.0.1:http", "127.0.0.1:70000", ":5"])
+@pytest.mark.parametrize("world", ["localhost", "127.0.0.1:http", "127.0.0.1:70000", ":5", "127.0.0.1:²"])
 def test_an_agent_started_with_a_bad_world_address_says_so_in_one_line(
     world: str, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -138,7 +138,7 @@ def run_agent(world: tuple[str, int], agent: int, token: str) -> int:
 def world_address(text: str) -> tuple[str, int]:
     """`HOST:PORT` as `(host, port)`, or one error line."""
     host, _, port = text.rpartition(":")
-    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+    if not host or not (port.isascii() and port.isdigit()) or not 0 < int(port) < 65536:
         raise bad_value("world", text, "give HOST:PORT, PORT in 1..65535 (the world's control socket)")
     return host, int(port)
 
