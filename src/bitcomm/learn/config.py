@@ -436,9 +436,10 @@ def oracle_refusal(task: TaskConfig) -> ConfigError | None:
 LONG_GRID_STEPS_PER_SIDE = 3
 """Where a recipe's training cut is shorter than the corner-to-corner path, 2 (size - 1) moves (so that it ends
 episodes the oracle itself could not finish: from 18x18 with the default's 32 steps), the cut becomes this many steps
-per cell of the grid's side, 96 at 32x32, what the 32x32 study trained with. Measured at 32x32 (K = 10, seed 0,
-200,000 episodes, 1,000 evaluation episodes): cut at 32 steps 153.6 sampled, at 64 60.3, at 96 47.1; at 16x16 the
-default's 32 stays (48 was 2-3% longer sampled on seeds 0 and 1, and slower): docs/tuning.md session 53."""
+per cell of the grid's side, 96 at 32x32, what the 32x32 study trained with. Measured at 32x32 (K = 10, 200,000
+episodes, 1,000 evaluation episodes): cut at 32 steps 153.6 / 145.6 sampled on seeds 0 / 1, at 96 47.1 / 40.1, at 64
+60.3 on seed 0; at 16x16 the default's 32 stays (48 was 2-3% longer sampled on seeds 0 and 1, and slower):
+docs/tuning.md session 53."""
 
 
 def spare_words(task: TaskConfig) -> bool:
