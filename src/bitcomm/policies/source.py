@@ -122,6 +122,14 @@ def load_controller(run: str) -> Any:
         raise ConfigError(f"cannot load RUN {run!r}: {err}") from None
 
 
+@lru_cache(maxsize=4)
+def load_onnx(path: str) -> Any:
+    """`OnnxController.load(path)`, once per path: what its card says (task, messages) is asked more than once."""
+    from bitcomm.policies.onnx_policy import OnnxController
+
+    return OnnxController.load(path)
+
+
 @dataclass(frozen=True)
 class PolicySource:
     """A per-agent policy to build: `name` is a reference policy, "run" with `run` a path, or "onnx"
@@ -146,26 +154,24 @@ class PolicySource:
     def label(self) -> str:
         return {"run": self.run, "onnx": self.onnx}.get(self.name) or self.name
 
+    def _learned(self) -> Any:
+        """The learned policy's controller, loaded once per path (None for a reference policy)."""
+        if self.name == "run":
+            return load_controller(self.run)
+        if self.name == "onnx":
+            return load_onnx(str(self.onnx))
+        return None
+
     def base_task(self) -> TaskConfig:
         """The task the policy belongs to: its training task for a learned one, the paper's defaults otherwise."""
-        if self.name == "run":
-            return load_controller(self.run).task  # type: ignore[no-any-return]
-        if self.name == "onnx":
-            from bitcomm.policies.onnx_policy import OnnxController
-
-            return OnnxController.load(str(self.onnx)).task
-        return TaskConfig()
+        learned = self._learned()
+        return TaskConfig() if learned is None else learned.task
 
     def onehot(self) -> bool:
         """Whether the policy sends one-hot messages: acting then holds tables of 2^K per agent and episode
         (`bitcomm.commands.flags.play_bytes`)."""
-        if self.name == "run":
-            return load_controller(self.run).messages == "onehot"  # type: ignore[no-any-return]
-        if self.name == "onnx":
-            from bitcomm.policies.onnx_policy import OnnxController
-
-            return OnnxController.load(str(self.onnx)).messages == "onehot"
-        return False
+        learned = self._learned()
+        return learned is not None and learned.messages == "onehot"
 
     def task_from_args(self, args: argparse.Namespace) -> TaskConfig:
         """The task to run: `base_task()` changed by the task flags the user gave."""
