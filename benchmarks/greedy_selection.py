@@ -47,6 +47,7 @@ def _config(args: dict[str, Any], seed: int) -> Any:
         episodes=args["episodes"],
         held_out_every=args["held_out_every"],
         held_out_episodes=args["held_out_episodes"],
+        train_max_steps=args.get("train_max_steps"),  # None: the recipe's cut
         keep_checkpoints=1,
     )
 
@@ -66,6 +67,7 @@ def measure_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
     from bitcomm.policies.evaluation import evaluate_checkpoint
 
     out = Path(args["out"])
+    eval_seed = args.get("eval_seed", EVAL_SEED)
     result_file = out / f"seed{seed}.json"
     if result_file.is_file():
         return dict(json.loads(result_file.read_text()), kept=True)
@@ -75,14 +77,15 @@ def measure_seed(args: dict[str, Any], seed: int) -> dict[str, Any]:
     result: dict[str, Any] = {"seed": seed, "run": str(run)}
     for which in measured(args):
         pointer = run / "checkpoints" / f"{which}.json"
-        played = evaluate_checkpoint(pointer, args["eval_episodes"], EVAL_SEED, greedy=True)
+        played = evaluate_checkpoint(pointer, args["eval_episodes"], eval_seed, greedy=True)
         result[which] = {
             "episodes": json.loads(pointer.read_text())["episodes"],
             "greedy": round(played.mean_episode_length, 4),
             "stalled": round(1.0 - played.success_rate, 5),
         }
-    sampled = evaluate_checkpoint(run / "checkpoints" / "latest.json", args["eval_episodes"], EVAL_SEED)
+    sampled = evaluate_checkpoint(run / "checkpoints" / "latest.json", args["eval_episodes"], eval_seed)
     result["latest"]["sampled"] = round(sampled.mean_episode_length, 4)
+    result["latest"]["sampled_stalled"] = round(1.0 - sampled.success_rate, 5)
     tmp = result_file.with_suffix(".tmp")
     tmp.write_text(json.dumps(result) + "\n")
     tmp.replace(result_file)

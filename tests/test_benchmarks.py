@@ -397,6 +397,30 @@ def test_greedy_selection_measures_latest_and_best_and_keeps_measured_seeds(tmp_
     assert bad.returncode == 2 and "held-out-every=-1" in bad.stderr and "Traceback" not in bad.stderr
 
 
+def test_training_cut_trains_each_cut_on_the_same_seeds_and_keeps_measured_runs(tmp_path: Path) -> None:
+    argv = [sys.executable, "benchmarks/training_cut.py", "--size", "4", "--bits", "4", "--episodes", "128",
+            "--cuts", "8,recipe", "--seeds", "1", "--eval-episodes", "16", "--jobs", "1",
+            "--out", str(tmp_path)]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    first = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert first.returncode == 0, first.stderr
+    summary = json.loads(first.stdout.strip().splitlines()[-1])
+    assert summary["recipe_cut"] == 32 and [row["cut"] for row in summary["cuts"]] == [8, 32]
+    for row in summary["cuts"]:
+        (run,) = row["runs"]
+        config = json.loads((tmp_path / f"cut{row['cut']}" / "seed0" / "config.json").read_text())
+        assert config["train_max_steps"] == row["cut"] and config["seed"] == 0 and config["episodes"] == 128
+        assert run["latest"]["sampled"] >= 1 and run["latest"]["greedy"] >= 1
+    assert "cut 32 (the recipe's)" in first.stdout
+    again = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert again.returncode == 0, again.stderr
+    kept = [run for row in json.loads(again.stdout.strip().splitlines()[-1])["cuts"] for run in row["runs"]]
+    assert all(run.pop("kept") for run in kept) and kept == [row["runs"][0] for row in summary["cuts"]]
+    for cuts, message in (("8,x", "'x' is not a cut"), ("32,recipe", "names the recipe's cut (32) twice")):
+        bad = subprocess.run([*argv[:2], "--cuts", cuts], cwd=ROOT, capture_output=True, text=True, env=env)
+        assert bad.returncode == 2 and message in bad.stderr and "Traceback" not in bad.stderr
+
+
 def test_run_marks_reads_loose_runs_as_the_study_tables_do(tmp_path: Path) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     run = tmp_path / "run"
