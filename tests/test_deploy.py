@@ -194,8 +194,22 @@ def test_cli_json_has_the_evaluators_keys() -> None:
 
 def test_a_run_past_its_time_bound_says_so() -> None:
     """Not "agent 0 did not answer within 10 s": every agent answered while the bound lasted."""
-    with pytest.raises(DeployError, match=r"time bound \(--timeout\)"):
-        run_deploy(ORACLE, TINY, 100_000, seed=0, deadline_ms=1, timeout_s=3)
+    played: list[int] = []
+    with pytest.raises(DeployError, match=r"time bound \(--timeout\)") as stopped:
+        run_deploy(
+            ORACLE, TINY, 100_000, seed=0, deadline_ms=1, timeout_s=3, on_episode=lambda o: played.append(o.index)
+        )
+    assert [o.index for o in stopped.value.finished] == played == list(range(len(played)))
+
+
+def test_the_cli_summarises_the_episodes_played_before_the_time_bound() -> None:
+    cmd = [sys.executable, "-m", "bitcomm.cli", "deploy", "--policy", "oracle", "--size", "4", "--bits", "4",
+           "--episodes", "100000", "--seed", "0", "--deadline-ms", "1", "--timeout", "8"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1 and "time bound (--timeout)" in done.stderr and "Traceback" not in done.stderr
+    lines = done.stdout.splitlines()
+    finished = sum(line.startswith("episode ") for line in lines)
+    assert finished > 0 and lines[-1].startswith(f"deployed, {finished} of 100000 episodes before it stopped: mean")
 
 
 def test_an_agent_dying_ends_the_run(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -77,7 +77,7 @@ def _line(result: EvalResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.deploy import DeployError, run_deploy
+    from bitcomm.deploy import DeployError, DeployResult, run_deploy
     from bitcomm.policies.agent_policies import BatchedPolicy
     from bitcomm.policies.evaluation import evaluate
 
@@ -96,6 +96,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = run_deploy(source, task, episodes, args.seed, args.deadline_ms, args.timeout, on_episode=report)
     except DeployError as err:
+        if err.finished:  # the episodes played before it stopped, as the summary would read them
+            played = DeployResult(err.finished, task.env.max_steps).summary
+            print(f"deployed, {len(err.finished)} of {episodes} episodes before it stopped: {_line(played)}", file=log)
         print(f"bitcomm deploy: error: {err}", file=sys.stderr)
         return 1
     deployed = result.summary

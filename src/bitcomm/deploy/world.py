@@ -42,6 +42,13 @@ from bitcomm.policies.source import PolicySource
 class DeployError(RuntimeError):
     """The run could not go on (an agent died, hung, or the time bound passed); one line."""
 
+    finished: list[EpisodeOutcome]
+    """The episodes played to their end before the run stopped (`run_deploy` fills it in)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.finished = []
+
 
 @dataclass(frozen=True)
 class EpisodeOutcome:
@@ -243,6 +250,7 @@ def run_deploy(
     n = task.env.n_agents
     starts, goals = episode_set(task, episodes, seed)
     agents = _Agents(n, began + timeout_s)
+    outcomes: list[EpisodeOutcome] = []
     try:
         agents.accept()
         run_id = secrets.randbits(32)
@@ -260,7 +268,6 @@ def run_deploy(
         startup = time.monotonic() - began
 
         core = GoalExchangeCore(task.env, 1, seed=np.random.SeedSequence(seed, spawn_key=(n,)))
-        outcomes = []
         for e in range(episodes):
             place_episode(core, starts[e], goals[e])
             t0 = time.perf_counter()
@@ -292,5 +299,8 @@ def run_deploy(
                     network[key] = network.get(key, 0) + int(value)
         network["control_malformed"] = agents.malformed
         return DeployResult(outcomes, task.env.max_steps, network, startup, time.monotonic() - began)
+    except DeployError as err:
+        err.finished = outcomes  # what was played still counts: the command summarises it
+        raise
     finally:
         agents.close()

@@ -272,14 +272,21 @@ class Learner:
             stats[k] = [v]
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
+    def estimated(
+        self, ro: Rollout, it: torch.Tensor, ib: torch.Tensor, features: BatchFeatures | None = None
+    ) -> Advantages:
+        """The estimator's advantages and returns over the critics' baselines, as the estimator computes them:
+        before any normalisation or masking (what `studies.variance` compares between the two estimators)."""
+        b_action, b_message = self.baselines(ro, it, ib, features)
+        batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
+        return self.estimator(batch, self.cfg.gamma, self.cfg.task.channel.delay)
+
     def advantages(self, ro: Rollout, features: BatchFeatures | None = None) -> Advantages:
         """The chosen estimator's advantages on the batch `ro`, with the critics' baselines (and normalised
         with `adv_norm`): the only weights the policy-gradient term gives the two heads' scores. Messages of the
         episodes whose senders sent their most likely message (`greedy_senders`) get none."""
         it, ib = ro.valid.nonzero(as_tuple=True)
-        b_action, b_message = self.baselines(ro, it, ib, features)
-        batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
-        adv = self.estimator(batch, self.cfg.gamma, self.cfg.task.channel.delay)
+        adv = self.estimated(ro, it, ib, features)
         if self.cfg.adv_norm:
             adv = adv._replace(action=scaled(adv.action, ro.valid), message=scaled(adv.message, ro.valid))
         if ro.sent_greedy.any():  # a most likely message is no sample of the message policy: no credit for it

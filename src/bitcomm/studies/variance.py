@@ -35,7 +35,7 @@ from bitcomm.checkpoint import checkpoints, load_grid_weights
 from bitcomm.config import TaskConfig
 from bitcomm.errors import ConfigError, bad_value
 from bitcomm.learn.config import TrainConfig
-from bitcomm.learn.estimators import ESTIMATORS, Advantages, EstimatorBatch, discounted_returns, policy_gradient_loss
+from bitcomm.learn.estimators import ESTIMATORS, Advantages, discounted_returns, policy_gradient_loss
 from bitcomm.learn.learner import Learner
 from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.plotting import save_figure
@@ -297,10 +297,7 @@ def measure_stage(stage: Stage, vcfg: VarianceConfig) -> list[VarianceRow]:
         it, ib = ro.valid.nonzero(as_tuple=True)
         logp_move, logp_message = player.log_probs(ro)
         for name, learner in learners.items():
-            # baselines and advantages, exactly as the trainer computes them
-            b_action, b_message = learner.baselines(ro, it, ib)
-            batch = EstimatorBatch(ro.rewards, ro.done, ro.valid, b_action, b_message, ro.dropped)
-            adv = learner.estimator(batch, cfg.gamma, cfg.task.channel.delay)
+            adv = learner.estimated(ro, it, ib)  # baselines and advantages, exactly as the trainer computes them
             with torch.no_grad():
                 critic_mse[name].append(learner.critic_loss(ro, it, ib, adv.returns).item())
             for part, g in gradient_parts(policy, logp_move, logp_message, adv, ro.valid).items():
