@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.policies.evaluation import evaluate
+from bitcomm.policies.reference import OraclePolicy
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = "--modes sync --recipes reinforced --batches 1 --warmup 1 --num-envs 8 --threads 1 --single-pass"
@@ -367,6 +369,11 @@ def test_a_seed_that_diverges_stops_and_is_measured_at_its_last_checkpoint(tmp_p
     result = solve_seed(args, 0)
     assert len(calls) == 2 and result["episodes"] == 16 and "diverged after 40 episodes" in result["diverged"]
     assert result["final_eval"]["sampled"] > 0  # measured at the checkpoint of the first chunk
+    # the rungs' oracle is the one on the episodes that confirm them, not on the training seed's episodes
+    task = TaskConfig(EnvConfig(size=3), ChannelConfig(bits=4))
+    on_eval_set = evaluate(OraclePolicy(task), task, 20, 12345).mean_episode_length
+    config = json.loads((tmp_path / "seed0" / "config.json").read_text())
+    assert result["oracle"] == on_eval_set != config["oracle_mean_episode_length"]
 
 
 def test_greedy_selection_measures_latest_and_best_and_keeps_measured_seeds(tmp_path: Path) -> None:
