@@ -621,7 +621,8 @@ def test_the_commit_recorded_is_bitcomms_own_and_says_whether_its_source_was_cha
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A checkout records its commit, and `git_dirty` once the package's source differs from it; an installed copy
-    records no commit, even inside another project's repository (a `.venv` in it), whose commit is not bitcomm's."""
+    built without git records no commit, even inside another project's repository (a `.venv` in it), whose commit
+    is not bitcomm's."""
     from bitcomm import provenance
 
     checkout = tmp_path / "checkout"
@@ -649,6 +650,47 @@ def test_the_commit_recorded_is_bitcomms_own_and_says_whether_its_source_was_cha
     assert provenance.git_state() == (None, None)
     monkeypatch.setattr(provenance, "PACKAGE", package_in(tmp_path / "site-packages"))
     assert provenance.git_state() == (None, None)
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+def test_an_installed_copy_records_the_commit_it_was_built_from(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The build bakes the checkout's commit into the package it builds (setup.py); an installed copy, which no
+    checkout tracks, records that one, even inside another project's repository, while a checkout asks git."""
+    from bitcomm import commit, provenance
+
+    checkout = tmp_path / "checkout"
+    source = package_in(checkout / "src")
+    git(checkout, "init", "-q")
+    git(checkout, "add", ".")
+    git(checkout, "commit", "-qm", "bitcomm")
+    head = git(checkout, "rev-parse", "HEAD")
+    project = tmp_path / "project"
+    project.mkdir()
+    git(project, "init", "-q")
+    (project / ".gitignore").write_text(".venv/\n")
+    git(project, "add", ".")
+    git(project, "commit", "-qm", "a project that installs bitcomm")
+    installed = package_in(project / ".venv" / "site-packages")
+    commit.bake(source, installed)
+    monkeypatch.setattr(provenance, "PACKAGE", installed)
+    assert provenance.git_state() == (head, False)
+    record = provenance.record()
+    assert tuple(record) == provenance.RECORDED and (record["git_commit"], record["git_dirty"]) == (head, False)
+
+    (source / "new_module.py").write_text("x = 1\n")
+    commit.bake(source, installed)  # built from a changed source
+    assert provenance.git_state() == (head, True)
+    (source / commit.BUILT).write_text(json.dumps({"git_commit": "a" * 40, "git_dirty": False}))
+    monkeypatch.setattr(provenance, "PACKAGE", source)
+    assert provenance.git_state() == (head, True)  # a checkout asks git, whatever file lies in it
+
+    monkeypatch.setattr(provenance, "PACKAGE", installed)
+    (installed / commit.BUILT).write_text("{not json")
+    assert provenance.git_state() == (None, None)
+    commit.bake(package_in(tmp_path / "sdist" / "src"), installed)  # a build from no checkout removes an old file
+    assert not (installed / commit.BUILT).exists() and provenance.git_state() == (None, None)
 
 
 def test_a_run_records_its_commit_whether_its_source_was_changed_and_its_libraries(run: Path) -> None:

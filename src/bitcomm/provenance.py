@@ -3,10 +3,10 @@ machine, the torch threads and the command, recorded by every run's config.json 
 provenance.json, so that a figure in a paper can be traced to what made it.
 
 The commit is bitcomm's own: git is asked only where this package's source is a file that git tracks (a
-source checkout, or an editable install of one). An install in site-packages records None, never the
-commit of a repository that happens to hold the virtual environment (a project's `.venv`), and a checkout
-with uncommitted changes to the package's source says so in `git_dirty`: a commit alone would claim code
-that did not run.
+source checkout, or an editable install of one), and a checkout with uncommitted changes to the package's
+source says so in `git_dirty`: a commit alone would claim code that did not run. An install in site-packages
+records the commit it was built from, which the build baked into it (`bitcomm.commit`), else None, never the
+commit of a repository that happens to hold the virtual environment (a project's `.venv`).
 """
 
 from __future__ import annotations
@@ -15,13 +15,13 @@ import contextlib
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from bitcomm import commit
 from bitcomm.files import write_text_atomic
 
 PACKAGE = Path(__file__).resolve().parent
@@ -36,25 +36,13 @@ RECORDED = ("time", "git_commit", "git_dirty", "versions", "torch_threads", "mac
 """The keys of `record`."""
 
 
-def _git(*args: str) -> subprocess.CompletedProcess[str] | None:
-    """`git ARGS` run in the package's folder; None where git is missing or hangs."""
-    try:
-        return subprocess.run(["git", *args], capture_output=True, text=True, timeout=5, cwd=PACKAGE)
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
 def git_state() -> tuple[str | None, bool | None]:
-    """The commit of the checkout this package runs from and whether the package's source differs from it (a
-    changed, staged, deleted or untracked file under its folder); (None, None) where its source is not tracked
-    by git (an installed copy, even one inside another project's repository)."""
-    tracked = _git("ls-files", "--error-unmatch", "__init__.py")
-    head = _git("rev-parse", "HEAD") if tracked is not None and tracked.returncode == 0 else None
-    commit = head.stdout.strip() if head is not None and head.returncode == 0 else ""
-    if not commit:
-        return None, None
-    status = _git("status", "--porcelain", "--", ".")
-    return commit, None if status is None or status.returncode != 0 else bool(status.stdout.strip())
+    """The commit this package's code is and whether its source differs from it: asked of git where its source
+    is tracked by git (a checkout, or an editable install of one), else the commit an installed copy was built
+    from, baked into it by the build (`bitcomm.commit`); (None, None) where neither is known (an installed copy
+    built without git, even one inside another project's repository)."""
+    live = commit.of(PACKAGE)
+    return live if live[0] is not None else commit.baked(PACKAGE)
 
 
 def versions() -> dict[str, str]:
@@ -86,11 +74,11 @@ def record() -> dict[str, Any]:
     and command line."""
     import torch
 
-    commit, dirty = git_state()
+    git_commit, git_dirty = git_state()
     return {
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "git_commit": commit,
-        "git_dirty": dirty,
+        "git_commit": git_commit,
+        "git_dirty": git_dirty,
         "versions": versions(),
         "torch_threads": torch.get_num_threads(),
         "machine": machine(),

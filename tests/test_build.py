@@ -1,0 +1,56 @@
+"""Building bitcomm: a wheel (`pip wheel .`, or `pip install .`, which builds one) carries the commit of the
+checkout it was built from in `bitcomm/_build.json`, so that an installed copy's runs record it."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from bitcomm.commit import BUILT
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def can_build_wheels() -> bool:
+    """The build runs without isolation (which would download setuptools), so it needs this environment's
+    setuptools and its wheel builder (in setuptools since 70.1, else the `wheel` package)."""
+    if importlib.util.find_spec("setuptools") is None:
+        return False
+    return any(importlib.util.find_spec(name) is not None for name in ("setuptools.command.bdist_wheel", "wheel"))
+
+
+def git(folder: Path, *args: str) -> str:
+    return subprocess.run(
+        ["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=folder, check=True, capture_output=True,
+        text=True,
+    ).stdout.strip()  # fmt: skip
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+@pytest.mark.skipif(not can_build_wheels(), reason="needs setuptools>=70.1 (or wheel) to build without network")
+def test_a_built_wheel_names_the_commit_it_was_built_from(tmp_path: Path) -> None:
+    source = tmp_path / "source"  # this tree's build files, committed: the commit is known, the repo untouched
+    source.mkdir()
+    for name in ("pyproject.toml", "setup.py", "README.md"):
+        shutil.copy2(ROOT / name, source / name)
+    shutil.copytree(ROOT / "src" / "bitcomm", source / "src" / "bitcomm", ignore=shutil.ignore_patterns("__pycache__"))
+    git(source, "init", "-q")
+    git(source, "add", ".")
+    git(source, "commit", "-qm", "bitcomm")
+    wheels = tmp_path / "wheels"
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index", "-q",
+         "--disable-pip-version-check", "-w", str(wheels), str(source)],
+        check=True, capture_output=True, cwd=tmp_path,
+    )  # fmt: skip
+    (wheel,) = wheels.glob("bitcomm-*.whl")
+    with zipfile.ZipFile(wheel) as archive:
+        baked = json.loads(archive.read(f"bitcomm/{BUILT}"))
+    assert baked == {"git_commit": git(source, "rev-parse", "HEAD"), "git_dirty": False}
