@@ -38,9 +38,13 @@ def of(folder: Path) -> tuple[str | None, bool | None]:
 
 
 def bake(source: Path, built: Path) -> None:
-    """Write `BUILT` into the built package folder `built`, naming the commit of the package's `source` folder;
-    none where git knows no commit (then the installed copy records None), not even an earlier build's."""
+    """Write `BUILT` into the built package folder `built`, naming the commit of the package's `source` folder, or
+    where git knows none, the commit an sdist's source was baked with (an unpacked sdist, as `python -m build`
+    builds its wheel from); none where neither is known (then the installed copy records None), not even an
+    earlier build's."""
     commit, dirty = of(source)
+    if commit is None:
+        commit, dirty = baked(source)
     if commit is None:
         (built / BUILT).unlink(missing_ok=True)
     else:
