@@ -26,7 +26,11 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from solve import add_seed_flags, seed_range  # benchmarks/ is not a package: run as a script, it is on sys.path
+from solve import (  # benchmarks/ is not a package: run as a script, it is on sys.path
+    add_seed_flags,
+    check_seed_flags,
+    seed_range,
+)
 
 EVAL_SEED = 12345
 TARGET = 1.05
@@ -129,19 +133,11 @@ def main() -> None:
     ap.add_argument("--held-out-every", type=int, default=8192, help="0: no held-out set; the latest only")
     ap.add_argument("--held-out-episodes", type=int, default=1000)
     ap.add_argument("--eval-episodes", type=int, default=10_000, help="test episodes (seed 12345) per checkpoint")
-    ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads per seed")
     ap.add_argument("--out", type=Path, default=Path("runs/greedy-selection"))
     a = ap.parse_args()
     try:  # bad input is one line before any seed starts
-        for name in ("seeds", "jobs", "threads", "eval_episodes", "episodes"):
-            check_int(name, getattr(a, name), 1)
+        check_seed_flags(a, "eval_episodes", "episodes")
         check_int("held_out_every", a.held_out_every, 0)
-        check_int("first_seed", a.first_seed, 0)
-        if a.bits is None:
-            from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-
-            a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
         args = {**vars(a), "out": str(a.out)}
         task = _config(args, a.first_seed).task
         oracle = evaluate(OraclePolicy(task), task, a.eval_episodes, EVAL_SEED).mean_episode_length

@@ -162,8 +162,9 @@ def _with_budget(cfg: Any, episodes: int) -> Any:
     return replace(cfg, episodes=episodes)
 
 
-def add_seed_flags(ap: argparse.ArgumentParser) -> None:
-    """What a seed-by-seed benchmark trains: the recipe, the technique, the task and the seeds."""
+def add_seed_flags(ap: argparse.ArgumentParser, run: str = "seed") -> None:
+    """What a seed-by-seed benchmark trains (the recipe, the technique, the task and the seeds), and how many of its
+    `run`s train at once, on how many torch threads each."""
     ap.add_argument("--recipe", default=DEFAULT_RECIPE)
     ap.add_argument("--estimator", default="improved")
     ap.add_argument("--messages", default="bitwise")
@@ -171,6 +172,21 @@ def add_seed_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--bits", type=int, default=None, help="default: the task's default for the size")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--jobs", type=int, default=2, help=f"{run}s trained at once")
+    ap.add_argument("--threads", type=int, default=1, help=f"torch threads per {run}")
+
+
+def check_seed_flags(a: argparse.Namespace, *positive: str) -> None:
+    """`add_seed_flags`' values, `--jobs`, `--threads` and the `positive` flags checked (one line each, raised as
+    ConfigError); `--bits` left out becomes the task's default for the grid's size."""
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.errors import check_int
+
+    for name in ("seeds", "jobs", "threads", *positive):
+        check_int(name, getattr(a, name), 1)
+    check_int("first_seed", a.first_seed, 0)
+    if a.bits is None:
+        a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
 
 
 def seed_range(a: argparse.Namespace) -> range:
@@ -184,7 +200,7 @@ def _solve_star(item: tuple[dict[str, Any], int]) -> dict[str, Any]:
 
 def main() -> None:
     from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
-    from bitcomm.errors import ConfigError, check_int, check_number
+    from bitcomm.errors import ConfigError, check_number
     from bitcomm.learn.config import make_train_config
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -199,18 +215,13 @@ def main() -> None:
     )
     ap.add_argument("--chunk", type=int, default=1024, help="episodes between checks")
     ap.add_argument("--eval-episodes", type=int, default=2000)
-    ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads per seed")
     ap.add_argument("--out", type=Path, default=None, help="default runs/solve/<recipe>-<size>x<size>-<time>")
     add_set_flag(ap)
     a = ap.parse_args()
     try:  # bad input is one line before any seed starts
         overrides = parse_set(ap, a.set)
-        for name in ("seeds", "jobs", "threads", "chunk", "eval_episodes", "max_episodes"):
-            check_int(name, getattr(a, name), 1)
+        check_seed_flags(a, "chunk", "eval_episodes", "max_episodes")
         check_number("minutes", a.minutes, 0.0, strict=True)
-        if a.bits is None:
-            a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
         task = TaskConfig(EnvConfig(size=a.size), ChannelConfig(bits=a.bits))
         cfg = make_train_config(a.recipe, task, estimator=a.estimator, messages=a.messages, **dict(overrides))
         if cfg.anneals and not cfg.anneal_episodes:

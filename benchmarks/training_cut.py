@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from greedy_selection import _config, measure_seed  # benchmarks/ is not a package: the script's folder is on the path
-from solve import add_seed_flags, seed_range
+from solve import add_seed_flags, check_seed_flags, seed_range
 
 RECIPE_CUT = "recipe"
 
@@ -55,29 +55,22 @@ def _measure(item: tuple[dict[str, Any], int]) -> dict[str, Any]:
 
 
 def main() -> None:
-    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
     from bitcomm.errors import ConfigError, check_int
     from bitcomm.policies.evaluation import evaluate
     from bitcomm.policies.reference import OraclePolicy
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_seed_flags(ap)
+    add_seed_flags(ap, run="run")
     ap.add_argument("--episodes", type=int, default=200_000, help="training budget per run")
     ap.add_argument("--cuts", default=f"32,{RECIPE_CUT}", help=f"comma-separated steps, or {RECIPE_CUT!r}")
     ap.add_argument("--eval-episodes", type=int, default=1000)
     ap.add_argument("--eval-seed", type=int, default=1000, help="the episodes the 32x32 study evaluates on")
-    ap.add_argument("--jobs", type=int, default=2, help="runs trained at once")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads per run")
     ap.add_argument("--out", type=Path, default=Path("runs/training-cut"))
     a = ap.parse_args()
     try:  # bad input is one line before any run starts
-        for name in ("seeds", "jobs", "threads", "eval_episodes", "episodes"):
-            check_int(name, getattr(a, name), 1)
-        check_int("first_seed", a.first_seed, 0)
+        check_seed_flags(a, "eval_episodes", "episodes")
         check_int("eval_seed", a.eval_seed, 0)
         cuts = parse_cuts(a.cuts)
-        if a.bits is None:
-            a.bits = TaskConfig(EnvConfig(size=a.size), ChannelConfig()).channel.bits
         base = {k: v for k, v in vars(a).items() if k != "cuts"}
         base.update(out=str(a.out), held_out_every=0, held_out_episodes=1000)  # no held-out set
         recipe_cut = _config({**base, "train_max_steps": None}, a.first_seed).train_max_steps

@@ -13,6 +13,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from tests.test_run_folder import git
 
 from bitcomm.commit import BUILT
 
@@ -31,13 +32,6 @@ pytestmark = [
     pytest.mark.skipif(shutil.which("git") is None, reason="needs git"),
     pytest.mark.skipif(not can_build_wheels(), reason="needs setuptools>=70.1 (or wheel) to build without network"),
 ]
-
-
-def git(folder: Path, *args: str) -> str:
-    return subprocess.run(
-        ["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=folder, check=True, capture_output=True,
-        text=True,
-    ).stdout.strip()  # fmt: skip
 
 
 def committed_source(tmp_path: Path) -> Path:

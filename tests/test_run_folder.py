@@ -609,6 +609,17 @@ def git(folder: Path, *args: str) -> str:
     ).stdout.strip()  # fmt: skip
 
 
+def a_project_ignoring_its_venv(tmp_path: Path) -> Path:
+    """A user's project under git, whose .venv (where bitcomm is installed) git ignores."""
+    project = tmp_path / "project"
+    project.mkdir()
+    git(project, "init", "-q")
+    (project / ".gitignore").write_text(".venv/\n")
+    git(project, "add", ".")
+    git(project, "commit", "-qm", "a project that installs bitcomm")
+    return project
+
+
 def package_in(folder: Path) -> Path:
     package = folder / "bitcomm"
     package.mkdir(parents=True)
@@ -640,12 +651,7 @@ def test_the_commit_recorded_is_bitcomms_own_and_says_whether_its_source_was_cha
     record = provenance.record()
     assert tuple(record) == provenance.RECORDED and (record["git_commit"], record["git_dirty"]) == (head, True)
 
-    project = tmp_path / "project"
-    project.mkdir()
-    git(project, "init", "-q")
-    (project / ".gitignore").write_text(".venv/\n")
-    git(project, "add", ".")
-    git(project, "commit", "-qm", "a project that installs bitcomm")
+    project = a_project_ignoring_its_venv(tmp_path)
     monkeypatch.setattr(provenance, "PACKAGE", package_in(project / ".venv" / "site-packages"))
     assert provenance.git_state() == (None, None)
     monkeypatch.setattr(provenance, "PACKAGE", package_in(tmp_path / "site-packages"))
@@ -666,12 +672,7 @@ def test_an_installed_copy_records_the_commit_it_was_built_from(
     git(checkout, "add", ".")
     git(checkout, "commit", "-qm", "bitcomm")
     head = git(checkout, "rev-parse", "HEAD")
-    project = tmp_path / "project"
-    project.mkdir()
-    git(project, "init", "-q")
-    (project / ".gitignore").write_text(".venv/\n")
-    git(project, "add", ".")
-    git(project, "commit", "-qm", "a project that installs bitcomm")
+    project = a_project_ignoring_its_venv(tmp_path)
     installed = package_in(project / ".venv" / "site-packages")
     commit.bake(source, installed)
     monkeypatch.setattr(provenance, "PACKAGE", installed)
