@@ -436,10 +436,11 @@ def oracle_refusal(task: TaskConfig) -> ConfigError | None:
 LONG_GRID_STEPS_PER_SIDE = 3
 """Where a recipe's training cut is shorter than the corner-to-corner path, 2 (size - 1) moves (so that it ends
 episodes the oracle itself could not finish: from 18x18 with the default's 32 steps), the cut becomes this many steps
-per cell of the grid's side, 96 at 32x32, what the 32x32 study trained with. Measured at 32x32 (K = 10, 200,000
-episodes, 1,000 evaluation episodes): cut at 32 steps 153.6 / 145.6 sampled on seeds 0 / 1, at 96 47.1 / 40.1, at 64
-60.3 on seed 0; at 16x16 the default's 32 stays (48 was 2-3% longer sampled on seeds 0 and 1, and slower):
-docs/tuning.md session 53."""
+per cell of the grid's side, 96 at 32x32, what the 32x32 study trained with. Sampled play on seeds 0 / 1 (1,000
+evaluation episodes, `benchmarks/training_cut.py`): 32x32 (K = 10, 200,000 episodes) 47.1 / 40.1 at 96 steps against
+153.6 / 145.6 at 32 (60.3 at 64 on seed 0); 24x24 24.6 / 26.8 at 72 against 37.7 / 41.2; 18x18 17.8 / 18.5 at 54
+against 19.2 / 20.8. At 16x16 the default's 32 stays (48 was 2-3% longer sampled on seeds 0 and 1, and slower):
+docs/tuning.md sessions 53 and 54."""
 
 
 def spare_words(task: TaskConfig) -> bool:
