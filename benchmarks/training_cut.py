@@ -73,12 +73,12 @@ def main() -> None:
         cuts = parse_cuts(a.cuts)
         base = {k: v for k, v in vars(a).items() if k != "cuts"}
         base.update(out=str(a.out), held_out_every=0, held_out_episodes=1000)  # no held-out set
-        recipe_cut = _config({**base, "train_max_steps": None}, a.first_seed).train_max_steps
+        recipes = _config({**base, "train_max_steps": None}, a.first_seed)  # the recipe's own cut, on the task
+        recipe_cut, task = recipes.train_max_steps, recipes.task
         steps = [recipe_cut if cut is None else _config({**base, "train_max_steps": cut}, 0).train_max_steps
                  for cut in cuts]  # fmt: skip
         if len(set(steps)) < len(steps):
             raise ConfigError(f"--cuts: {a.cuts!r} names the recipe's cut ({recipe_cut}) twice")
-        task = _config(base, a.first_seed).task
         oracle = evaluate(OraclePolicy(task), task, a.eval_episodes, a.eval_seed)
     except ConfigError as err:
         ap.error(str(err))
