@@ -217,6 +217,10 @@ GOOD = {"observation": np.array([0.5, 0.5, 0.0], np.float32), "messages": np.zer
             "(3 numbers once flattened, not 2)",
         ),
         ({"speaker": {**GOOD, "observation": "high"}}, "invalid observations['speaker']['observation']"),
+        (
+            {"listener": {**GOOD, "observation": np.array([0.5, np.nan, 0.0], np.float32)}},
+            "invalid observations['listener']['observation']=nan: the env's observations must be finite numbers",
+        ),
     ],
 )
 def test_an_observation_a_bitchannel_would_not_give_is_one_line(observations: Any, line: str) -> None:

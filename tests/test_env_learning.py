@@ -171,6 +171,32 @@ class OddRewardEnv(SignalEnv):
         return obs, rewards, term, trunc, infos
 
 
+class OddObservationEnv(SignalEnv):
+    """SignalEnv whose listener's observation at its second step is `odd`: "nan" or "inf" in one number,
+    "longer" (4 numbers for a space of 3), "scalar" (one number, which numpy would broadcast over 3), "missing"
+    (no observation for it while it is listed), or "state nan" (a `state_space` whose `state()` gives NaN)."""
+
+    def __init__(self, odd: str = "nan") -> None:
+        super().__init__(steps=3)
+        self.odd = odd
+        if odd == "state nan":
+            self.state_space = spaces.Box(0, 1, (2,), np.float32)
+
+    def state(self) -> np.ndarray:
+        return np.array([0.5, np.nan if self.t >= 1 else 0.5], np.float32)
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        obs, rewards, term, trunc, infos = super().step(actions)
+        if self.t == 1:
+            odd = {"nan": np.array([0.5, np.nan, 0.5], np.float32), "inf": np.array([0.5, np.inf, 0.5], np.float32),
+                   "longer": np.zeros(4, np.float32), "scalar": np.float32(0.5)}  # fmt: skip
+            if self.odd in odd:
+                obs["listener"] = odd[self.odd]
+            elif self.odd == "missing":
+                del obs["listener"]
+        return obs, rewards, term, trunc, infos
+
+
 class CountedEnv(SignalEnv):
     """SignalEnv that counts the copies made and closed (an env may hold a window, files or a process)."""
 
@@ -543,6 +569,35 @@ def test_a_reward_that_is_not_a_finite_number_is_one_line(
         f"bitcomm train: error: invalid rewards['speaker']={shown}: the env's rewards must be finite numbers"
     ], err
     assert not list(tmp_path.glob("run/checkpoints/*.safetensors"))  # nothing learned: the same command starts afresh
+
+
+@pytest.mark.parametrize(
+    ("odd", "line"),
+    [
+        ("nan", "invalid observations['listener']['observation']=nan: the env's observations must be finite numbers "
+                "(as float32; the network cannot read NaN or infinity)"),
+        ("inf", "invalid observations['listener']['observation']=inf: the env's observations must be finite numbers "
+                "(as float32; the network cannot read NaN or infinity)"),
+        ("state nan", "invalid state()=nan: the env's state must be finite numbers (as float32)"),
+        ("longer", "invalid observations['listener']['observation'] shape=(4,): must fit Box(0.0, 1.0, (3,), "
+                   "float32) (3 numbers once flattened, not 4)"),
+        ("scalar", "invalid observations['listener']['observation'] shape=(): must fit Box(0.0, 1.0, (3,), float32) "
+                   "(3 numbers once flattened, not 1)"),
+        ("missing", "invalid observations=['speaker']: the env gave none for 'listener', which is in env.agents; a "
+                    "ParallelEnv observes every agent it lists"),
+    ],
+)  # fmt: skip
+def test_an_observation_the_network_cannot_read_is_one_line(
+    odd: str, line: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not a traceback from torch's sampler (NaN, inf), from numpy's broadcast (a longer observation), or nothing
+    at all (a scalar spread over the space; a listed agent with no observation acted on zeros and was counted
+    absent, so it was never learned from nor rewarded): the env's value, named."""
+    kwargs = json.dumps({"odd": odd})
+    argv = ["train", "--env", f"{__name__}:OddObservationEnv", "--env-kwargs", kwargs, "--num-envs", "4"]
+    code = main([*argv, "--episodes", "4", "--hidden", "16", "--out", str(tmp_path / "run"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == [f"bitcomm train: error: {line}"], err
 
 
 def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:

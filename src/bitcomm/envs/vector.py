@@ -37,7 +37,7 @@ from pettingzoo import ParallelEnv
 
 from bitcomm.envs.channel_wrapper import BitChannel
 from bitcomm.envs.factory import make_parallel_env
-from bitcomm.errors import bad_value
+from bitcomm.errors import bad_value, one_line
 
 MAX_JOINT_ACTIONS = 4096
 """A MultiDiscrete or MultiBinary action space is learned as one categorical over its combinations: this many at
@@ -239,7 +239,14 @@ class VecEnv:
     def _write(self, out: VecObservation, b: int, obs: dict[str, Any]) -> None:
         """Row b of `out` from one copy's observation dict (the only per-agent loop: dicts to arrays)."""
         env, L = self.envs[b], self.layout
-        agent_rows(L, obs, set(env.agents), out.obs[b], out.received[b], out.alive[b])
+        live = set(env.agents)
+        if not live <= obs.keys():  # it would act on zeros and be counted absent: learned from, and rewarded, never
+            missing = next(a for a in env.agents if a not in obs)
+            raise bad_value(
+                "observations", sorted(map(str, obs)), f"the env gave none for {missing!r}, which is in env.agents; "
+                "a ParallelEnv observes every agent it lists",
+            )  # fmt: skip
+        agent_rows(L, obs, live, out.obs[b], out.received[b], out.alive[b])
         state = inner_state(env) if L.has_state else None
         out.state[b] = state if state is not None else out.obs[b].ravel()
 
@@ -248,6 +255,7 @@ class VecEnv:
         for b, env in enumerate(self.envs):
             obs, _ = env.reset(seed=int(seeds[b]))
             self._write(out, b, obs)
+        check_finite(self.layout, out.obs, out.state if self.layout.has_state else None)
         self.running[:] = True
         return out
 
@@ -275,6 +283,7 @@ class VecEnv:
                 self.running[b] = False
             else:
                 self._write(out, int(b), obs)
+        check_finite(L, out.obs, out.state if L.has_state else None)
         return VecStep(out, rewards, dropped, ended)
 
     def close(self) -> None:
@@ -301,9 +310,42 @@ def agent_rows(
     its user's, so that both show the network the same inputs)."""
     for i, a in enumerate(layout.agents):
         if a in live and a in observations:
-            obs[i, : layout.obs_sizes[i]] = flat_observation(layout.obs_spaces[i], observations[a]["observation"])
+            obs[i, : layout.obs_sizes[i]] = flat_row(layout, i, observations[a]["observation"])
             received[i] = observations[a]["messages"]
             alive[i] = True
+
+
+def flat_row(layout: EnvLayout, i: int, observation: Any) -> np.ndarray:
+    """Agent i's inner observation flattened (`flat_observation`), or one line naming it if it does not fit the
+    agent's space: a value gymnasium cannot flatten, or one of another size (which would be cut, broadcast or
+    refused by numpy without a word about the env)."""
+    space, where = layout.obs_spaces[i], f"observations[{layout.agents[i]!r}]['observation']"
+    try:
+        flat = flat_observation(space, observation)
+    except (TypeError, ValueError, IndexError, KeyError, AssertionError) as err:
+        raise bad_value(where, type(observation).__name__, f"does not fit {space} ({one_line(err)})") from None
+    if flat.size != layout.obs_sizes[i]:
+        raise bad_value(
+            f"{where} shape", np.shape(observation),
+            f"must fit {space} ({layout.obs_sizes[i]} numbers once flattened, not {flat.size})",
+        )  # fmt: skip
+    return flat
+
+
+def check_finite(layout: EnvLayout, obs: np.ndarray, state: np.ndarray | None = None) -> None:
+    """One line for a NaN or infinite observation `(..., n, D)` (or critic state `(..., Ds)` read from the env's
+    `state()`), naming the agent: the network would turn it into NaN probabilities and stop in a traceback
+    from torch's sampler, or as "training diverged", blaming the learning rate for the env's value."""
+    if not np.isfinite(obs).all():
+        where = np.argwhere(~np.isfinite(obs))[0]
+        agent, value = layout.agents[int(where[-2])], obs[tuple(where)]
+        raise bad_value(
+            f"observations[{agent!r}]['observation']", value.item(), "the env's observations must be finite numbers "
+            "(as float32; the network cannot read NaN or infinity)",
+        )  # fmt: skip
+    if state is not None and not np.isfinite(state).all():
+        value = state[~np.isfinite(state)][0]
+        raise bad_value("state()", value.item(), "the env's state must be finite numbers (as float32)")
 
 
 def joint_action(

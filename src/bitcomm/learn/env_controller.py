@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from pettingzoo import ParallelEnv
 
-from bitcomm.envs.vector import EnvLayout, agent_rows, flat_observation, joint_action
-from bitcomm.errors import bad_value, one_line
+from bitcomm.envs.vector import EnvLayout, agent_rows, check_finite, joint_action
+from bitcomm.errors import bad_value
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_eval import load_env_policy
 from bitcomm.learn.env_rollout import env_factory
@@ -77,6 +77,7 @@ class EnvController:
         received = np.zeros((1, L.n, L.slots, L.bits), np.uint8)
         alive = np.zeros((1, L.n), bool)
         agent_rows(L, observations, set(observations), obs[0], received[0], alive[0])
+        check_finite(L, obs)
         if not alive.any():  # nothing to act for: no network call, no draw (as `play` after every copy ended)
             return {}
         act_out, msg_logits = self.policy(torch.from_numpy(obs), torch.from_numpy(received))
@@ -86,17 +87,18 @@ class EnvController:
 
     def _check(self, observations: Mapping[Any, Any]) -> None:
         """One line for an observation `BitChannel` would not have given: an agent the run's env does not have, a
-        key missing, a shape or value that does not fit the agent's space (the network would read it silently)."""
+        key missing, received bits of another shape or not 0 or 1 (the network would read them silently); an
+        observation that does not fit its agent's space, or is not finite, is refused as `act` reads it
+        (`vector.flat_row`, `vector.check_finite`), as in training."""
         L = self.layout
         if not isinstance(observations, Mapping):
             raise bad_value(
                 "observations", type(observations).__name__, "must be a dict agent -> observation, as BitChannel's "
                 "reset and step return",
             )  # fmt: skip
-        index = {a: i for i, a in enumerate(L.agents)}
         for agent, ob in observations.items():
             where = f"observations[{agent!r}]"
-            if agent not in index:
+            if agent not in L.agents:
                 raise bad_value("agent", agent, f"the run's env has agents {list(L.agents)}")
             missing = [k for k in KEYS if not isinstance(ob, Mapping) or k not in ob]
             if missing:
@@ -105,7 +107,6 @@ class EnvController:
                     f"must be a dict with {' and '.join(map(repr, KEYS))} (as BitChannel returns); {missing[0]!r} "
                     "is missing",
                 )  # fmt: skip
-            i = index[agent]
             bits = np.asarray(ob["messages"])
             if bits.shape != (L.slots, L.bits):
                 raise bad_value(
@@ -114,14 +115,3 @@ class EnvController:
             off = (bits != 0) & (bits != 1)  # the network reads uint8: a 0.5 or a NaN would be cast without a word
             if off.any():
                 raise bad_value(f"{where}['messages']", bits[off].flat[0].item(), "every bit must be 0 or 1")
-            space = L.obs_spaces[i]
-            try:
-                size = flat_observation(space, ob["observation"]).size
-            except (TypeError, ValueError, IndexError, KeyError, AssertionError) as err:
-                raise bad_value(f"{where}['observation']", type(ob["observation"]).__name__, f"does not fit {space} "
-                                f"({one_line(err)})") from None  # fmt: skip
-            if size != L.obs_sizes[i]:
-                raise bad_value(
-                    f"{where}['observation'] shape", np.shape(ob["observation"]),
-                    f"must fit {space} ({L.obs_sizes[i]} numbers once flattened, not {size})",
-                )  # fmt: skip
