@@ -352,6 +352,17 @@ def test_fixed_actions_replace_the_inner_action() -> None:
     assert [r["b"] for r in toy.received] == [2, 2, 2] and [r["a"] for r in toy.received] == [0, 0, 0]
 
 
+@pytest.mark.parametrize("space", [spaces.MultiDiscrete([2, 3]), spaces.MultiBinary(2)])
+def test_a_fixed_action_written_as_a_list_reaches_the_env_as_an_array_of_its_space(space: spaces.Space) -> None:
+    """`--fixed-actions` is JSON, so a MultiDiscrete or MultiBinary action comes as a list; the env gets the
+    array of the space's dtype that every other action of the space is (an env may read `action.shape`)."""
+    toy = Toy(steps=2, action_space=space)
+    env = BitChannel(toy, bits=2, fixed_actions={"b": [1, 0]})
+    run(env, lambda t, a: np.zeros(2, np.int8))
+    fixed = [r["b"] for r in toy.received]
+    assert all(isinstance(f, np.ndarray) and f.dtype == space.dtype and f.tolist() == [1, 0] for f in fixed), fixed
+
+
 def test_fixed_actions_silence_the_speakers_own_comm_action() -> None:
     # the speaker's comm action is fixed at 0, so the listener always sees comm one-hot [1, 0, 0]
     env = BitChannel(INNER["speaker_listener"](), bits=3, fixed_actions={"speaker_0": 0})

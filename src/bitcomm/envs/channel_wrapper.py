@@ -271,5 +271,7 @@ def _check_fixed(fixed: Mapping[str, Any] | None, action_spaces: dict[AgentID, s
             action = int(value)
         if action is None or isinstance(value, bool) or not space.contains(action):
             raise bad_value(f"fixed_actions[{agent!r}]", value, f"must be an action of {space}")
+        if isinstance(space, (spaces.MultiDiscrete, spaces.MultiBinary)):  # a JSON list reaches the env as the
+            action = np.asarray(action, dtype=space.dtype)  # array of the space's dtype its other actions are
         out[agent] = action
     return out
