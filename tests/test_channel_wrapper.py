@@ -345,6 +345,38 @@ def test_an_env_that_keeps_a_finished_agent_while_others_play_on_is_one_line() -
     assert all(truncated.values()) and env.agents == ["a", "b", "c"]
 
 
+class ListsAStranger(Toy):
+    """Toy with PettingZoo's rule broken: agent "z", not in `possible_agents`, is listed from step `joins` on."""
+
+    def __init__(self, joins: int) -> None:
+        super().__init__(steps=4)
+        self.joins = joins
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        out = super().reset(seed, options)
+        self.agents += ["z"] if self.joins == 0 else []
+        return out
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        out = super().step({a: act for a, act in actions.items() if a != "z"})
+        self.agents += ["z"] if self.t >= self.joins else []
+        return out
+
+
+@pytest.mark.parametrize("joins", [0, 1])
+def test_an_env_that_lists_an_agent_outside_possible_agents_is_one_line(joins: int) -> None:
+    """The wrapper has no slot, topology row or spaces for it: it would be asked for an action no one can give
+    (a `KeyError` from `step`), and its observation dropped."""
+    env = BitChannel(ListsAStranger(joins), bits=2)
+    with pytest.raises(ConfigError) as err:
+        env.reset(seed=0)
+        env.step(dict.fromkeys("abc", {"action": 0, "message": np.ones(2, np.int8)}))
+    assert str(err.value) == (
+        "invalid env.agents=['a', 'b', 'c', 'z']: 'z' is not in possible_agents ['a', 'b', 'c']; a PettingZoo "
+        "ParallelEnv lists every agent that may play in possible_agents"
+    )
+
+
 def test_fixed_actions_replace_the_inner_action() -> None:
     toy = Toy(steps=3)
     env = BitChannel(toy, bits=2, fixed_actions={"b": 2})

@@ -158,7 +158,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         # options only when given: an env whose reset() takes no options is wrapped as it is
         extra = {} if options is None else {"options": options}
         observations, infos = self.inner.reset(seed=seed, **extra)
-        self.agents = list(self.inner.agents)
+        self.agents = _listed(self.inner, self._index)
         empty = np.zeros((self._n,) + self.slot_senders.shape[1:] + (self.bits,), dtype=np.int8)
         return self._augment(observations, empty), infos
 
@@ -189,7 +189,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         infos = {a: dict(info) for a, info in infos.items()}
         for agent, i in zip(live, rows, strict=True):
             infos.setdefault(agent, {})["message_dropped"] = bool(dropped[i])
-        self.agents = _live_after_step(self.inner, terminations, truncations)
+        self.agents = _live_after_step(self.inner, self._index, terminations, truncations)
         return self._augment(observations, received), rewards, terminations, truncations, infos
 
     def _messages(self, messages: list[Any], live: list[AgentID]) -> np.ndarray:
@@ -226,13 +226,29 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         self.inner.close()
 
 
-def _live_after_step(env: ParallelEnv, terminations: dict[AgentID, bool], truncations: dict[AgentID, bool]) -> list:
+def _listed(env: ParallelEnv, known: Mapping[AgentID, int]) -> list[AgentID]:
+    """The inner env's `agents`, or one line if one of them is not in its `possible_agents` (PettingZoo's
+    `parallel_api_test` checks it): the wrapper has no slot, topology row or spaces for it, so it would be asked
+    for an action no one can give, and its observation dropped."""
+    agents = list(env.agents)
+    stranger = next((a for a in agents if a not in known), None)
+    if stranger is not None:
+        raise bad_value(
+            "env.agents", agents, f"{stranger!r} is not in possible_agents {list(known)}; a PettingZoo ParallelEnv "
+            "lists every agent that may play in possible_agents",
+        )  # fmt: skip
+    return agents
+
+
+def _live_after_step(
+    env: ParallelEnv, known: Mapping[AgentID, int], terminations: dict[AgentID, bool], truncations: dict[AgentID, bool]
+) -> list:
     """The inner env's `agents` after a step, or one line if an agent that just finished is still among them
     while others play on: a ParallelEnv removes an agent once it terminates or truncates (PettingZoo's
     `parallel_api_test` checks it). Kept, it would be asked for actions, and its messages sent, after it left,
     and a learner would count it as present for one more step. An env that lists every agent, all done, at the
     end of the episode is let through: nothing is stepped after it."""
-    agents = list(env.agents)
+    agents = _listed(env, known)
     done = [a for a in agents if terminations.get(a, False) or truncations.get(a, False)]
     if done and len(done) < len(agents):
         raise bad_value(
