@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -248,6 +249,22 @@ def add_threads_flag(p: argparse.ArgumentParser, more: str = "") -> None:
     p.add_argument("--threads", type=integer(1, MAX_JOBS), default=None, help=THREADS_HELP + more)
 
 
+OMP_THREADS = "OMP_NUM_THREADS"
+_OMP_COUNT = re.compile(r"\s*\+?[0-9]+\s*")
+
+
+def check_omp_threads() -> None:
+    """Refuse an OMP_NUM_THREADS that OpenMP would not read (a positive count, or OpenMP's list of one per
+    nesting level, `4,2`), before torch loads: its OpenMP runtime would print its own warning line and pick
+    the threads itself. An empty one is unset (as `default_threads` reads it), and removed so OpenMP is quiet."""
+    text = os.environ.get(OMP_THREADS)
+    if text is not None and not text.strip():
+        del os.environ[OMP_THREADS]
+    elif text is not None and not all(_OMP_COUNT.fullmatch(n) and int(n) > 0 for n in text.split(",")):
+        allowed = "must be a positive integer (torch's threads); unset, --threads or the idle cores choose them"
+        raise bad_value(OMP_THREADS, text, allowed)
+
+
 def default_threads() -> int | None:
     """The cores not busy now (by the 1-minute load average), at least 1; None when OMP_NUM_THREADS is set.
 
@@ -255,7 +272,7 @@ def default_threads() -> int | None:
     2.9x slower (44.7 s per 1,280 episodes) while 1 thread lost far less (21.1 s); `bitcomm eval` of
     200 32x32 episodes beside two busy cores took 11.9 s on 2 threads against 3.7 s on 1 (session 18).
     """
-    if os.environ.get("OMP_NUM_THREADS"):
+    if os.environ.get(OMP_THREADS):
         return None
     cores = os.cpu_count() or 1
     return max(1, cores - round(os.getloadavg()[0]))
