@@ -284,7 +284,8 @@ def test_an_omp_num_threads_openmp_reads_is_left_to_torch(tmp_path: Path, monkey
     run = tmp_path / "run"
     env = {**ENV, "OMP_NUM_THREADS": " "}
     argv = ["train", *TINY, "--episodes", "16", "--quiet", "--eval-episodes", "0", "--out", str(run)]
-    done = subprocess.run([sys.executable, "-m", "bitcomm", *argv], capture_output=True, text=True, env=env, timeout=120)
+    command = [sys.executable, "-m", "bitcomm", *argv]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 0 and done.stderr == "", done.stderr
     assert "torch threads: " in done.stdout and "OMP_NUM_THREADS" not in done.stdout
 
