@@ -24,6 +24,7 @@ import pytest
 
 from bitcomm.cli import build_parser, main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+from bitcomm.errors import ConfigError
 
 FILE, READONLY, DIRECTORY = "<an existing file>", "<in a read-only folder>", "<an existing folder>"
 PIPE = "<a named pipe>"  # a device as well: written by renaming a file over it, /dev/null was replaced (as root)
@@ -315,6 +316,24 @@ def test_eval_batch_matches_the_evaluator() -> None:
     from bitcomm.policies.evaluation import EVAL_CHUNK
 
     assert EVAL_BATCH == EVAL_CHUNK
+
+
+@pytest.mark.parametrize(("bits", "used_mib"), [(16, 854), (18, 2200)])
+def test_training_with_one_hot_messages_is_refused_where_it_would_not_fit_and_only_there(
+    bits: int, used_mib: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Peak memory of `bitcomm train --messages onehot --bits K --episodes 384 --threads 1` (10x10, 3 batches,
+    session 55): 854 MiB at 16 bits, 2,200 at 18. The check counted 348 / 1,308 MiB for what a 392 MiB 4-bit run
+    does not hold, left the tables a batch acts on out, and so let a run start on memory it would run out of."""
+    from bitcomm.commands import flags
+    from bitcomm.learn.config import make_train_config
+
+    cfg = make_train_config("reinforced", TaskConfig(EnvConfig(), ChannelConfig(bits=bits)), messages="onehot")
+    monkeypatch.setattr(flags, "available_bytes", lambda: used_mib << 20)
+    flags.check_train(cfg)  # it fits: not refused
+    monkeypatch.setattr(flags, "available_bytes", lambda: (used_mib - 392) * 9 // 10 << 20)
+    with pytest.raises(ConfigError, match=f"invalid bits={bits}: one-hot messages over 2\\^{bits} words"):
+        flags.check_train(cfg)
 
 
 def test_a_one_hot_policy_too_wide_to_play_that_many_episodes_is_refused(

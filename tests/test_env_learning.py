@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import errno
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -695,6 +697,31 @@ def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: p
     checkpoint = str(Path(out) / "checkpoints" / "ckpt_000000016.safetensors")
     assert main(["eval", checkpoint, "--episodes", "10"]) == 0
     assert "10 episodes, mean team return" in capsys.readouterr().out
+
+
+@pytest.mark.usefixtures("trust_test_envs")  # --resume reads the run back
+def test_a_finished_env_run_whose_curve_cannot_be_drawn_warns_and_succeeds(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As on the grid: the run is saved, so a refused drawing of its curve is one warning and status 0."""
+    from matplotlib.figure import Figure
+
+    def full(*args: object, **kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    out = tmp_path / "run"
+    argv = ["train", "--env", SPEC, "--bits", "2", "--num-envs", "8", "--episodes", "8", "--hidden", "16"]
+    with monkeypatch.context() as refused:  # not `undo()`: that would undo the fixture's trust too
+        refused.setattr(Figure, "savefig", full)
+        assert main([*argv, "--out", str(out), "--quiet", "--eval-episodes", "0", "--threads", "1"]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"warning: {str(out / 'learning_curve.png')!r}: No space left on device; the run is finished and saved; "
+        f"`bitcomm train --resume --out {out}` draws it"
+    )
+    assert (out / "checkpoints" / "ckpt_000000008.safetensors").is_file()
+    assert main(["train", "--resume", "--out", str(out), "--quiet", "--eval-episodes", "0"]) == 0
+    assert (out / "learning_curve.png").is_file()
 
 
 def test_resuming_a_grid_run_with_env_says_what_the_run_is(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -356,6 +356,28 @@ def test_a_full_disk_stops_the_run_in_one_line_and_resume_goes_on(
     assert [row.split(",")[0] for row in rows] == [str(b) for b in range(1, 11)]
 
 
+def test_a_finished_run_whose_last_curve_cannot_be_drawn_warns_in_one_line_and_succeeds(
+    tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The curve is drawn from metrics.csv after the last checkpoint: a finished, saved run whose last drawing the
+    disk refuses ends with status 0 and one warning naming the file and how to draw it (`--resume`, which does)."""
+    from matplotlib.figure import Figure
+
+    out = tmp_path / "run"
+    monkeypatch.setattr(Figure, "savefig", _full_on_call(19, Figure.savefig))  # the 10th checkpoint's PNG: the last
+    rc, err = cli(capsys, "train", *QUICK, "--episodes", "160", "--out", str(out))
+    lines = err.strip().splitlines()
+    assert rc == 0 and len(lines) == 1 and "Traceback" not in err, err
+    assert "learning_curve.png" in lines[0] and "No space left on device" in lines[0], lines[0]
+    assert lines[0].endswith(f"the run is finished and saved; `bitcomm train --resume --out {out}` draws it"), lines[0]
+    assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] == 160
+    assert len((out / "metrics.csv").read_text().splitlines()) == 11 and leftovers(out) == []
+    monkeypatch.undo()
+    drawn = (out / "learning_curve.svg").stat().st_mtime_ns
+    assert cli(capsys, "train", "--resume", "--out", str(out), "--quiet", "--eval-episodes", "0")[0] == 0
+    assert (out / "learning_curve.svg").stat().st_mtime_ns > drawn
+
+
 def test_torch_saves_full_disk_is_the_os_error_not_a_zip_writers_position(tmp_path: Path) -> None:
     """torch reports a write that failed as a RuntimeError about its zip writer; a checkpoint's state is written
     so that it is the OSError itself (here EFBIG: the file size limit a process may be given, `ulimit -f`)."""

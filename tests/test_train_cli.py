@@ -259,6 +259,37 @@ def test_commands_whose_time_is_torchs_take_threads(
     assert ours == json.loads(theirs.strip().splitlines()[-1])
 
 
+@pytest.mark.parametrize("value", ["abc", "0", "-2", "1.5", "2,", "2,0"])
+def test_an_omp_num_threads_openmp_cannot_read_is_one_error_line(
+    value: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not the OpenMP runtime's own warning, then a run on threads it picked: every command refuses it, before work."""
+    monkeypatch.setenv("OMP_NUM_THREADS", value)
+    for argv in (["train", *TINY, "--episodes", "16"], ["baseline", "--episodes", "1"], ["eval", "RUN"]):
+        assert main(argv) == 2
+        assert capsys.readouterr().err.splitlines() == [
+            f"bitcomm {argv[0]}: error: invalid OMP_NUM_THREADS={value!r}: must be a positive integer (torch's "
+            "threads); unset, --threads or the idle cores choose them"
+        ]
+
+
+def test_an_omp_num_threads_openmp_reads_is_left_to_torch(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`3`, ` 3`, OpenMP's list by nesting level `2,1`; an empty one is no setting, and OpenMP says nothing."""
+    from bitcomm.commands.flags import check_omp_threads
+
+    for value in ("3", " 3", "+3", "2,1", "2, 1"):
+        monkeypatch.setenv("OMP_NUM_THREADS", value)
+        check_omp_threads()
+        assert os.environ["OMP_NUM_THREADS"] == value
+    run = tmp_path / "run"
+    env = {**ENV, "OMP_NUM_THREADS": " "}
+    argv = ["train", *TINY, "--episodes", "16", "--quiet", "--eval-episodes", "0", "--out", str(run)]
+    command = [sys.executable, "-m", "bitcomm", *argv]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=120)
+    assert done.returncode == 0 and done.stderr == "", done.stderr
+    assert "torch threads: " in done.stdout and "OMP_NUM_THREADS" not in done.stdout
+
+
 @pytest.mark.parametrize(
     "argv",
     [

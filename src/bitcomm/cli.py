@@ -12,7 +12,7 @@ import sys
 from typing import Any, NoReturn
 
 import bitcomm.commands
-from bitcomm.commands.flags import HelpFormatter
+from bitcomm.commands.flags import HelpFormatter, check_omp_threads
 from bitcomm.errors import ConfigError, os_error_line
 
 
@@ -61,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bitcomm {args.command}: error: unrecognized arguments: {' '.join(unknown)}", file=sys.stderr)
         return 2
     try:
+        check_omp_threads()  # before any command loads torch
         return int(args.run(args) or 0)
     except ConfigError as err:
         print(f"bitcomm {args.command}: error: {err}", file=sys.stderr)

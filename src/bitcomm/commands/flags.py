@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -179,10 +180,15 @@ def play_bytes(task: TaskConfig, episodes: int, steps: int = 1, onehot: bool = F
     return episodes * (steps * per_step + in_flight + acting)
 
 
-def onehot_bytes(task: TaskConfig, hidden: int, message_hidden: int) -> int:
-    """Parameters touched by 2^K one-hot messages (the policy's output, every network's message input),
-    in float32 with their gradient and two Adam moments (x16 bytes)."""
-    return task.channel.messages * (hidden + 3 * task.slots * message_hidden) * 16
+def onehot_bytes(cfg: TrainConfig) -> int:
+    """Parameters 2^K wide under one-hot messages, in float32 with their gradient and two Adam moments (x16
+    bytes): the policy's message output (over the layer it reads) and its input of heard messages (with the
+    message map's cells where it has one), and the standard estimator's critic's input of heard messages."""
+    model, task = cfg.model, cfg.training_task
+    reads = model.sender_hidden if model.message_reads == "observed" else model.hidden
+    heard = task.slots * model.message_hidden * (2 if cfg.estimator == "standard" else 1)
+    maps = task.env.cells if model.message_map else 0
+    return task.channel.messages * (reads + heard + maps) * 16
 
 
 def network_bytes(cfg: TrainConfig) -> int:
@@ -217,8 +223,10 @@ def check_eval(task: TaskConfig, episodes: int, onehot: bool = False, flag: str 
 
 
 def check_train(cfg: TrainConfig, processes: int = 1) -> None:
-    """Memory of `processes` training runs at once: rollout buffers, and the parameters of 2^K one-hot
-    messages (which is what 24 bits of one-hot messages ran out of: 64 GB)."""
+    """Memory of `processes` training runs at once: rollout buffers, and with one-hot messages the parameters
+    2^K wide (which is what 24 bits of one-hot messages ran out of: 64 GB) and the tables a batch acts on.
+    Measured peaks above a 4-bit run's (10x10, 128 episodes a batch, 3 batches): 124 / 462 / 1,809 MiB at 14 /
+    16 / 18 bits (547 at 16 with the standard estimator) against 112 / 448 / 1,792 (512) counted."""
     task = cfg.training_task
     for name, most in (("workers", MAX_JOBS), ("epochs", MAX_REPEATS)):
         if getattr(cfg, name) > most:
@@ -231,7 +239,8 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
     rollouts = play_bytes(task, batch, task.env.max_steps)
     onehot = 0
     if cfg.model.messages == "onehot":
-        onehot = learners * onehot_bytes(task, cfg.model.hidden, cfg.model.message_hidden)
+        acting = play_bytes(task, batch, task.env.max_steps, onehot=True) - rollouts
+        onehot = learners * onehot_bytes(cfg) + acting
     if onehot > rollouts:
         what = f"one-hot messages over 2^{task.channel.bits} words ({learners} learner(s))"
         check_memory("bits", task.channel.bits, onehot + rollouts, what)
@@ -248,6 +257,22 @@ def add_threads_flag(p: argparse.ArgumentParser, more: str = "") -> None:
     p.add_argument("--threads", type=integer(1, MAX_JOBS), default=None, help=THREADS_HELP + more)
 
 
+OMP_THREADS = "OMP_NUM_THREADS"
+_OMP_COUNT = re.compile(r"\s*\+?[0-9]+\s*")
+
+
+def check_omp_threads() -> None:
+    """Refuse an OMP_NUM_THREADS that OpenMP would not read (a positive count, or OpenMP's list of one per
+    nesting level, `4,2`), before torch loads: its OpenMP runtime would print its own warning line and pick
+    the threads itself. An empty one is unset (as `default_threads` reads it), and removed so OpenMP is quiet."""
+    text = os.environ.get(OMP_THREADS)
+    if text is not None and not text.strip():
+        del os.environ[OMP_THREADS]
+    elif text is not None and not all(_OMP_COUNT.fullmatch(n) and int(n) > 0 for n in text.split(",")):
+        allowed = "must be a positive integer (torch's threads); unset, --threads or the idle cores choose them"
+        raise bad_value(OMP_THREADS, text, allowed)
+
+
 def default_threads() -> int | None:
     """The cores not busy now (by the 1-minute load average), at least 1; None when OMP_NUM_THREADS is set.
 
@@ -255,7 +280,7 @@ def default_threads() -> int | None:
     2.9x slower (44.7 s per 1,280 episodes) while 1 thread lost far less (21.1 s); `bitcomm eval` of
     200 32x32 episodes beside two busy cores took 11.9 s on 2 threads against 3.7 s on 1 (session 18).
     """
-    if os.environ.get("OMP_NUM_THREADS"):
+    if os.environ.get(OMP_THREADS):
         return None
     cores = os.cpu_count() or 1
     return max(1, cores - round(os.getloadavg()[0]))

@@ -774,7 +774,8 @@ def save_run_checkpoint(
     metric: str = "episode_length",
     rank: float | None = None,
 ) -> Path:
-    """One checkpoint of the run (sync, a3c or a wrapped env), then the plot of `metric`. Retention keeps the
+    """One checkpoint of the run (sync, a3c or a wrapped env), then the plot of `metric` (a finished run whose
+    plot the system refuses warns in one line instead of failing: its files are saved). Retention keeps the
     best by `rank` where one is given (a held-out evaluation's mean episode length, inf between evaluations),
     else by the rolling mean of `metric`: the shortest episodes, or (`team_return`) the highest return."""
     rolling = float(np.mean(prog.recent)) if prog.recent else None
@@ -792,5 +793,12 @@ def save_run_checkpoint(
         keep=cfg.keep_checkpoints,
         rank=ranked,
     )
-    plot_learning_curve(out, metric)
+    try:
+        plot_learning_curve(out, metric)
+    except OSError as err:
+        if prog.episodes < cfg.episodes:  # mid-run: the disk that refused it would refuse the next checkpoint
+            raise
+        # finished and saved: the curve is only drawn from metrics.csv, so the run has not failed
+        resume = f"`bitcomm train --resume --out {out}` draws it"
+        print(f"warning: {os_error_line(err)}; the run is finished and saved; {resume}", file=sys.stderr)
     return path
