@@ -153,8 +153,8 @@ class SpacesEnv(ParallelEnv):
 
 class OddRewardEnv(SignalEnv):
     """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...; "raise": its step raises, as
-    an env's own bug would) from its `from_reset`-th reset on (each copy counts its own; the first copy is also
-    reset once when its spaces are read)."""
+    an env's own bug would; "array": `np.array([1.0])`; "missing": the speaker's is left out) from its
+    `from_reset`-th reset on (each copy counts its own; the first copy is also reset once when its spaces are read)."""
 
     def __init__(self, reward: Any = "nan", from_reset: int = 1) -> None:
         super().__init__()
@@ -169,7 +169,10 @@ class OddRewardEnv(SignalEnv):
         if self.resets >= self.from_reset:
             if self.reward == "raise":
                 raise ZeroDivisionError("the env's own bug")
-            rewards = dict.fromkeys(rewards, self.reward)
+            if self.reward == "missing":
+                rewards = {a: r for a, r in rewards.items() if a != "speaker"}
+            else:
+                rewards = dict.fromkeys(rewards, np.array([1.0]) if self.reward == "array" else self.reward)
         return obs, rewards, term, trunc, infos
 
 
@@ -571,6 +574,27 @@ def test_a_reward_that_is_not_a_finite_number_is_one_line(
         f"bitcomm train: error: invalid rewards['speaker']={shown}: the env's rewards must be finite numbers"
     ], err
     assert not list(tmp_path.glob("run/checkpoints/*.safetensors"))  # nothing learned: the same command starts afresh
+
+
+@pytest.mark.parametrize(
+    ("reward", "line"),
+    [
+        ("missing", "invalid rewards=['listener']: the env gave none for 'speaker', which acted this step; a "
+                    "ParallelEnv rewards every agent that acts (0.0 for no reward)"),
+        ("array", "invalid rewards['speaker'] shape=(1,): the env's rewards must be scalars, one number per agent "
+                  "(not arrays)"),
+    ],
+)  # fmt: skip
+def test_a_reward_missing_or_not_a_scalar_is_one_line(
+    reward: str, line: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A live agent left out of the rewards dict is the env's bug (PettingZoo's API test warns of it), not a reward
+    of 0 to learn from; `np.array([1.0])` is named by its shape, not as "not a finite number"."""
+    kwargs = json.dumps({"reward": reward})
+    argv = ["train", "--env", f"{__name__}:OddRewardEnv", "--env-kwargs", kwargs, "--num-envs", "4", "--episodes", "4"]
+    code = main([*argv, "--hidden", "16", "--out", str(tmp_path / "run"), "--quiet", "--eval-episodes", "0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == [f"bitcomm train: error: {line}"], err
 
 
 @pytest.mark.parametrize(

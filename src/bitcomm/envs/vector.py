@@ -274,7 +274,7 @@ class VecEnv:
             joint = joint_action(L, actions[b], messages[b], acting)
             obs, rew, term, trunc, infos = env.step(joint)
             for i, a in acting:
-                rewards[b, i] = finite_reward(rew.get(a, 0.0), a)
+                rewards[b, i] = agent_reward(rew, a)
                 dropped[b, i] = bool(infos.get(a, {}).get("message_dropped", False))
             # over when no listed agent plays on (an env may list every agent, all done, at the end; an agent
             # may join at the step the others finish)
@@ -356,10 +356,31 @@ def joint_action(
     return {a: {"action": inner_action(layout.action_spaces[i], actions[i]), "message": messages[i]} for i, a in acting}
 
 
+def agent_reward(rewards: Mapping[Any, Any], agent: Any) -> float:
+    """The reward of an agent that acted this step, from the env's dict, or one line naming it: PettingZoo's API
+    test warns of a live agent given no reward, and nothing documents a missing one as 0, so it is the env's bug,
+    not a reward of 0 to learn from."""
+    if agent not in rewards:  # `in`: not a defaultdict's made-up 0 (aec_to_parallel returns one)
+        raise bad_value(
+            "rewards", sorted(map(str, rewards)), f"the env gave none for {agent!r}, which acted this step; a "
+            "ParallelEnv rewards every agent that acts (0.0 for no reward)",
+        )  # fmt: skip
+    return finite_reward(rewards[agent], agent)
+
+
 def finite_reward(value: Any, agent: Any) -> float:
     """An agent's reward as a float, or one line naming it: a NaN or infinite reward (or one that is not a
     number) would otherwise reach the learner and stop the run as "training diverged", blaming the learning
-    rate for the env's value."""
+    rate for the env's value; an array (even of one number: numpy will not make it a float) is named by its
+    shape."""
+    try:
+        shape = np.shape(value)
+    except ValueError:  # a ragged list: not a number either
+        shape = ()
+    if shape != ():
+        raise bad_value(
+            f"rewards[{agent!r}] shape", shape, "the env's rewards must be scalars, one number per agent (not arrays)"
+        )
     try:
         reward = float(value)
     except (TypeError, ValueError):
