@@ -26,9 +26,11 @@ from bitcomm.studies.compare import (
     CHOICES,
     CompareConfig,
     Curve,
+    along_budget_markdown,
     budget_marks,
     execute,
     first_below,
+    first_logged,
     machines_sentence,
     plan,
     read_curve,
@@ -150,14 +152,14 @@ def test_study_writes_every_file_well_formed(study: tuple[Path, str]) -> None:
             sampled, greedy, cut = (run[play]["mean_episode_length"] for play in ("sampled", "greedy", "cut"))
             assert text_cell.startswith(f"{sampled:.2f} ({greedy:.1f}; {cut:.1f}); 2x: ") and "; 1.15x: " in text_cell
 
-    assert summary["study"]["episode_marks"] == [8, 16, 32, 48, 64]
-    assert along[0] == ["configuration", *(f"{e} episodes" for e in (8, 16, 32, 48, 64))]
+    assert summary["study"]["episode_marks"] == [16, 32, 48, 64]  # an eighth, 8, is before the first batch of 16
+    assert along[0] == ["configuration", *(f"{e} episodes" for e in (16, 32, 48, 64))]
     for name, *cells in along[1:]:
         at_end = by_name[name]["rolling_at_episodes"][-1]
         assert at_end["mean"] == pytest.approx(
             np.mean([r["final_rolling_episode_length"] for r in by_name[name]["runs"]])
         )
-        assert len(cells) == 5 and cells[-1].startswith(f"{at_end['mean']:.2f} ± ")
+        assert len(cells) == 4 and cells[-1].startswith(f"{at_end['mean']:.2f} ± ")
 
 
 def test_second_call_trains_nothing_and_rewrites_the_same_files(study: tuple[Path, str]) -> None:
@@ -360,6 +362,18 @@ def test_the_tables_read_every_curve_at_fractions_of_the_budget_as_the_plot_draw
     assert rolling_at_episodes(curve, 40, "length_rolling") == pytest.approx(7.0)  # between two batches
     assert rolling_at_episodes(curve, 8, "length_rolling") == 20.0  # before the first batch: its value
     assert rolling_at_episodes(curve, 64, "length_rolling") == 5.0
+
+
+def test_a_tiny_budget_is_read_only_from_the_first_logged_batch_on() -> None:
+    """8 episodes in batches of 4 were read at "1 episodes" and "2 episodes", where no run had logged anything
+    (every value there was the first batch's): the marks start at the runs' latest first logged batch, and a
+    header says "1 episode" where a batch of one episode was logged."""
+    steps = np.array([4.0, 8.0])
+    curves = [Curve(steps, steps, steps, steps, steps), Curve(steps - 3, steps, steps, steps, steps)]
+    assert budget_marks(8, first_logged(curves)) == [4, 6, 8]
+    assert budget_marks(8, 16) == [16]  # one batch of 16 for a budget of 8: read where it was logged
+    summary = {"study": {"episode_marks": [1, 2, 25_000]}, "configurations": [{"name": "x", "rolling_at_episodes": []}]}
+    assert "| configuration | 1 episode | 2 episodes | 25,000 episodes |" in along_budget_markdown(summary, "r", ".3f")
 
 
 @pytest.mark.parametrize(

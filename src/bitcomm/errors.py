@@ -26,9 +26,9 @@ def one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {' '.join(str(err).split())}"
 
 
-def plural(n: int, one: str, many: str) -> str:
-    """`1 episode`, `2 episodes`: a count in a message, as a reader says it."""
-    return f"{n} {one if n == 1 else many}"
+def plural(n: int, one: str, many: str, grouped: bool = False) -> str:
+    """`1 episode`, `2 episodes`: a count in a message, as a reader says it (`grouped`: `25,000 episodes`)."""
+    return f"{n:,} {one if n == 1 else many}" if grouped else f"{n} {one if n == 1 else many}"
 
 
 def os_error_line(err: OSError) -> str:

@@ -44,7 +44,7 @@ import threading
 import time
 import typing
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -614,9 +614,16 @@ def rolling_at(curve: Any, wall_s: float, field: str = "length_rolling") -> floa
     return float(getattr(curve, field)[rows[-1] if rows.size else 0])
 
 
-def budget_marks(episodes: int) -> list[int]:
-    """The episodes at which a study's tables read every run's curve: `BUDGET_FRACTIONS` of the budget."""
-    return sorted({max(1, round(f * episodes)) for f in BUDGET_FRACTIONS})
+def budget_marks(episodes: int, first_logged: int = 1) -> list[int]:
+    """The episodes at which a study's tables read every run's curve: `BUDGET_FRACTIONS` of the budget, none
+    before `first_logged` (the latest first logged batch of the runs: before it a curve holds no value of its
+    own, only its first batch's, so a tiny budget's marks there are moved to it)."""
+    return sorted({max(1, first_logged, round(f * episodes)) for f in BUDGET_FRACTIONS})
+
+
+def first_logged(curves: Iterable[Any]) -> int:
+    """The episodes by which every one of `curves` has logged its first batch (`budget_marks`)."""
+    return max(int(curve.episodes[0]) for curve in curves)
 
 
 def rolling_at_episodes(curve: Any, episodes: int, field: str) -> float:
@@ -753,7 +760,7 @@ def summarize(
     quickest run (equal wall-clock): a technique whose updates cost more has then played fewer episodes."""
     equal_wall = min(float(curves[r.folder].wall_s[-1]) for r in runs)
     first = runs[0].train
-    marks = budget_marks(first.episodes)
+    marks = budget_marks(first.episodes, first_logged(curves[r.folder] for r in runs))
     configurations = []
     for conf in dict.fromkeys(r.configuration for r in runs):
         result = oracle[conf.task_variant]
@@ -926,7 +933,7 @@ def per_seed_markdown(
 def along_budget_markdown(summary: dict[str, Any], measure: str, fmt: str) -> list[str]:
     """table.md's section reading every configuration's rolling `measure` at the study's episode marks."""
     marks = summary["study"]["episode_marks"]
-    header = ["configuration", *(f"{e:,} episodes" for e in marks)]
+    header = ["configuration", *(plural(e, "episode", "episodes", grouped=True) for e in marks)]
     lines = [
         "",
         f"## Rolling {measure} along the budget",

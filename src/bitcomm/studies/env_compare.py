@@ -45,6 +45,7 @@ from bitcomm.studies.compare import (
     draw_seed_band,
     evaluation_of,
     execute_all,
+    first_logged,
     interval,
     machines_sentence,
     markdown_header,
@@ -137,7 +138,7 @@ def summarize(cfg: EnvCompareConfig, runs: list[Run], curves: dict[Path, EnvCurv
     """summary.json: the study and, per technique, its runs and their intervals (equal episodes: the end of
     the budget; equal wall-clock: every run read at the quickest run's training time)."""
     equal_wall = min(float(curves[r.folder].wall_s[-1]) for r in runs)
-    marks = budget_marks(cfg.base.episodes)
+    marks = budget_marks(cfg.base.episodes, first_logged(curves[r.folder] for r in runs))
     configurations = []
     for conf in dict.fromkeys(r.configuration for r in runs):
         records = []
