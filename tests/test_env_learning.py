@@ -703,6 +703,71 @@ def test_cli_refuses_a_bad_env_before_it_prints_or_writes(
     assert not (tmp_path / "run").exists()
 
 
+class WideEnv(SignalEnv):
+    """SignalEnv whose listener observes `width` numbers (zeros but the last) and whose episodes last `steps`."""
+
+    def __init__(self, width: int = 3, steps: int = 2) -> None:
+        super().__init__(steps=steps)
+        self._obs = {**self._obs, "listener": spaces.Box(0, 1, (width,), np.float32)}
+
+    def _observe(self) -> dict[str, np.ndarray]:
+        obs = super()._observe()
+        wide = np.zeros(self._obs["listener"].shape, np.float32)
+        wide[-1] = obs["listener"][-1]
+        return {**obs, "listener": wide}
+
+
+def test_a_batch_whose_episodes_outgrow_memory_is_one_line_before_it_does(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """PettingZoo's cooperative_pong observes 403,200 floats per agent and a state of as many: 32 episodes side by
+    side hold 0.43 GB a step (with the copies learning makes), so a batch of its 900-step episodes wants some
+    400 GB and ended in a MemoryError traceback or the OOM killer. An episode's length is not known in advance:
+    the step that would not fit is refused, naming what to change, and nothing is saved (nothing was learned)."""
+    from bitcomm.learn import env_rollout
+
+    cfg = config(env=f"{__name__}:WideEnv", env_kwargs={"width": 1000, "steps": 50})
+    per_step = env_rollout.HELD_COPIES * cfg.num_envs * env_rollout.step_bytes(VecEnv(env_factory(cfg), 1).layout)
+    monkeypatch.setattr(env_rollout, "available_bytes", lambda: 10 * per_step + 1)
+    argv = ["train", "--env", cfg.env, "--env-kwargs", json.dumps(cfg.env_kwargs), "--bits", "2", "--num-envs", "8"]
+    code = main(
+        [*argv, "--episodes", "8", "--hidden", "16", "--out", str(tmp_path / "run"), "--quiet", "--eval-episodes", "0"]
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == [
+        f"bitcomm train: error: invalid num-envs=8: 8 episodes side by side outgrow memory at step 11 (2 agents "
+        f"observing 1,000 numbers, a state of 2,000: about {per_step / (1 << 30):.2f} GB a step, kept to the "
+        f"episodes' end; 0.0 GB available); give fewer --num-envs, or shorter episodes (the env's own option in "
+        "--env-kwargs, e.g. max_cycles)"
+    ], err
+    assert not list(tmp_path.glob("run/checkpoints/*.safetensors"))
+    monkeypatch.setattr(env_rollout, "available_bytes", lambda: 50 * per_step)  # 50 steps: it fits
+    assert len(play(VecEnv(env_factory(cfg), 8), EnvLearner(cfg, EnvLayout.of(env_factory(cfg)())).policy,
+                    np.random.SeedSequence(0), None).length) == 8  # fmt: skip
+
+
+def test_the_memory_check_counts_what_an_env_run_holds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before a line is printed: the networks' first layers read the observation and the state (a wide env's take
+    GBs), a batch's first step, and with one-hot messages the float32 tables of 2^K per agent and episode a batch
+    acts on (logits, softmax, cumulative sum, heard slots: what the grid's check counts), which were left out."""
+    from bitcomm.commands import env_train, flags
+
+    cfg = config(messages="onehot", channel={"bits": 16}, num_envs=32, hidden=(128, 128))
+    wide = (1 << 16) * (128 + 128) * 16  # the policy's message output and input (one slot), x16: Adam
+    acting = 32 * 2 * (1 << 16) * (3 + 1) * 4  # 2 agents hearing 1 slot each, 32 episodes
+    monkeypatch.setattr(flags, "available_bytes", lambda: wide + acting)
+    with pytest.raises(ConfigError, match=r"invalid bits=16: one-hot messages over 2\^16 words \(1 run\(s\) at once"):
+        env_train.check_env([cfg])
+    monkeypatch.setattr(flags, "available_bytes", lambda: 2 * (wide + acting))
+    env_train.check_env([cfg])  # it fits
+    big = config(env=f"{__name__}:WideEnv", env_kwargs={"width": 10**6}, hidden=(64,))
+    monkeypatch.setattr(flags, "available_bytes", lambda: 8 << 30)  # 3 M inputs x 64 x 16 bytes: 2.9 GB, fits
+    env_train.check_env([big])
+    monkeypatch.setattr(flags, "available_bytes", lambda: 2 << 30)
+    with pytest.raises(ConfigError, match="invalid hidden=64: the networks \\(2 agents observing 1,000,000 numbers"):
+        env_train.check_env([big])
+
+
 @pytest.mark.usefixtures("trust_test_envs")  # the run is read back: eval, --resume
 def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = str(tmp_path / "run")

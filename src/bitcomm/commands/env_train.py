@@ -114,23 +114,38 @@ def resumed_env_config(args: argparse.Namespace, out: Path) -> EnvTrainConfig:
 def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1) -> None:
     """Before a line is printed or a folder written: one copy of the runs' env built and its spaces read (a
     module that does not import, a factory that fails, a channel option or a space the learner cannot use is
-    one line now, not after the run started), and the 2^K-wide layers of one-hot messages, `processes` runs
-    at once, checked against the memory available (as `check_train` on the grid). `configs` share their env."""
-    from bitcomm.commands.flags import check_memory
+    one line now, not after the run started), and what `processes` runs at once would hold checked against the
+    memory available (as `check_train` on the grid): the networks (their first layers read the observation and
+    the state), a batch's first step, and with one-hot messages the 2^K-wide layers and the tables a batch acts
+    on. An episode's length is not known in advance: `play` refuses a batch whose later steps would not fit.
+    `configs` share their env."""
+    from bitcomm.commands.flags import acting_bytes, check_memory
     from bitcomm.envs.vector import EnvLayout
-    from bitcomm.learn.env_rollout import env_factory
+    from bitcomm.learn.env_rollout import HELD_COPIES, env_factory, step_bytes
 
     env = env_factory(configs[0])()
     try:
         layout = EnvLayout.of(env)
     finally:
         env.close()
+    seen = f"{layout.n} agents observing {layout.obs_dim:,} numbers, a state of {layout.state_size:,}"
     for cfg in configs:
+        h = cfg.hidden  # the policy's and the critic's first layers and hidden layers, x16: gradient and Adam
+        layers = (layout.obs_dim + layout.state_size) * h[0] + 2 * sum(a * b for a, b in zip(h, h[1:], strict=False))
+        check_memory("hidden", h[0], processes * layers * 16, f"the networks ({seen}; {processes} run(s) at once)")
+        batch = processes * cfg.num_envs
+        buffers = processes * layers * 16 + HELD_COPIES * batch * step_bytes(layout)
+        onehot = 0
         if cfg.messages == "onehot":  # the policy's output and message input, V1's message input (x16: Adam)
             readers = 2 if cfg.estimator == "standard" else 1
-            need = processes * (1 << cfg.channel.bits) * (cfg.hidden[-1] + readers * layout.slots * cfg.hidden[0]) * 16
+            wide = processes * (1 << cfg.channel.bits) * (h[-1] + readers * layout.slots * h[0]) * 16
+            onehot = wide + batch * acting_bytes(layout.n, cfg.channel.bits, layout.slots)
+        if onehot > buffers:
             what = f"one-hot messages over 2^{cfg.channel.bits} words ({processes} run(s) at once)"
-            check_memory("bits", cfg.channel.bits, need, what)
+            check_memory("bits", cfg.channel.bits, onehot + buffers, what)
+        else:
+            what = f"{batch} episodes side by side, for one step ({seen})"
+            check_memory("num-envs", cfg.num_envs, onehot + buffers, what)
 
 
 def train(args: argparse.Namespace, threads: int | None = None) -> int:

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 from bitcomm.config import MAX_EVAL_EPISODES, MAX_SEED
 from bitcomm.errors import bad_value
+from bitcomm.memory import BYTES_PER_GB, available_bytes
 
 if TYPE_CHECKING:
     from bitcomm.config import TaskConfig
@@ -47,7 +48,6 @@ MAX_DEADLINE_MS = 60_000.0
 """`deploy --deadline-ms`: a step waits at most a minute for its messages."""
 EVAL_BATCH = 4096
 """Episodes evaluation plays side by side (`bitcomm.policies.evaluation.EVAL_CHUNK`, held equal by a test)."""
-BYTES_PER_GB = 1 << 30
 
 
 def _range(least: float, most: float, strict: bool = False) -> str:
@@ -156,17 +156,6 @@ def gif_file(text: str) -> Path:
     return path
 
 
-def available_bytes() -> int:
-    """Memory the system can still give (MemAvailable), or all of it where /proc is missing."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
 def play_bytes(task: TaskConfig, episodes: int, steps: int = 1, onehot: bool = False) -> int:
     """Memory of `episodes` played side by side, `steps` of them kept: the uint8 observation planes and
     state (4n S^2), messages in flight (delay n K) and the float32 copies the networks read (x4, twice).
@@ -176,8 +165,14 @@ def play_bytes(task: TaskConfig, episodes: int, steps: int = 1, onehot: bool = F
     env, ch = task.env, task.channel
     per_step = 4 * env.n_agents * env.cells * 9
     in_flight = ch.delay * env.n_agents * ch.bits * task.slots
-    acting = env.n_agents * ch.messages * (3 + task.slots) * 4 if onehot else 0
+    acting = acting_bytes(env.n_agents, ch.bits, task.slots) if onehot else 0
     return episodes * (steps * per_step + in_flight + acting)
+
+
+def acting_bytes(agents: int, bits: int, slots: int) -> int:
+    """The float32 tables of 2^K a one-hot policy holds per episode at an acting step: per agent its logits,
+    their softmax and cumulative sum, and one per slot it hears (`play_bytes`; `--env`'s `check_env`)."""
+    return agents * (1 << bits) * (3 + slots) * 4
 
 
 def onehot_bytes(cfg: TrainConfig) -> int:

@@ -88,7 +88,7 @@ def evaluate_env(
     chunk = 0
     with make_vec(cfg, min(episodes, EVAL_CHUNK), drop_prob) as vec:
         while sum(len(r) for r in returns) < episodes:
-            ro = play(vec, policy, chunk_seed(seed, chunk), generator, greedy=greedy)
+            ro = play(vec, policy, chunk_seed(seed, chunk), generator, greedy=greedy, flag="episodes")
             returns.append(ro.team_return)
             lengths.append(ro.length)
             chunk += 1
