@@ -234,8 +234,7 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
     rollouts = play_bytes(task, batch, task.env.max_steps)
     onehot = 0
     if cfg.model.messages == "onehot":
-        acting = play_bytes(task, batch, task.env.max_steps, onehot=True) - rollouts
-        onehot = learners * onehot_bytes(cfg) + acting
+        onehot = learners * onehot_bytes(cfg) + batch * acting_bytes(task.env.n_agents, task.channel.bits, task.slots)
     if onehot > rollouts:
         what = f"one-hot messages over 2^{task.channel.bits} words ({learners} learner(s))"
         check_memory("bits", task.channel.bits, onehot + rollouts, what)
