@@ -774,8 +774,8 @@ def test_a_one_hot_env_run_too_wide_to_evaluate_that_many_episodes_is_refused_be
 ) -> None:
     """`bitcomm eval RUN` of a one-hot run on a wrapped env plays 256 episodes side by side, each acting on float32
     tables of 2^K per agent (logits, softmax, cumulative sum, heard slots): the grid's eval counts them, this one
-    did not, and at 16-24 bits ran out of memory mid-play. Refused in one line naming --episodes, as is
-    `train --env --eval-episodes` before it trains."""
+    did not, and at 16-24 bits ran out of memory mid-play. Refused in one line naming --episodes, as are
+    `train --env --eval-episodes` and a study's evaluations before they train."""
     from bitcomm.commands import flags
     from bitcomm.learn.env_rollout import HELD_COPIES, step_bytes
 
@@ -786,16 +786,18 @@ def test_a_one_hot_env_run_too_wide_to_evaluate_that_many_episodes_is_refused_be
     need = 256 * (flags.acting_bytes(2, 10, 1) + HELD_COPIES * step_bytes(layout))  # 8 MB of tables
     monkeypatch.setattr(flags, "available_bytes", lambda: need - 1)
     capsys.readouterr()
+    study = ["compare", "--env", SPEC, "--bits", "10", "--techniques", "improved-onehot", "--seeds", "1"]
     refused = [
         (["eval", run, "--episodes", "1000"], "episodes"),
         ([*argv, "--eval-episodes", "1000", "--out", str(tmp_path / "t")], "eval-episodes"),
+        ([*study, "--eval-episodes", "1000", "--out", str(tmp_path / "c")], "eval-episodes"),
     ]
     for command, flag in refused:
         assert main(command) == 2
         out, err = capsys.readouterr()
         assert out == "" and len(err.strip().splitlines()) == 1, (out, err)
         assert f"invalid {flag}=1000: 256 episodes side by side with one-hot messages over 2^10 words" in err
-    assert not (tmp_path / "t").exists()  # refused before training
+    assert not (tmp_path / "t").exists() and not (tmp_path / "c").exists()  # refused before training
     monkeypatch.setattr(flags, "available_bytes", lambda: need)
     assert main(["eval", run, "--episodes", "1000"]) == 0
     assert "1000 episodes, mean team return" in capsys.readouterr().out
