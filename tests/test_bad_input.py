@@ -10,6 +10,7 @@ accepts (those are not run). `KNOWN` adds the cross-flag cases of issue 20.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import re
@@ -334,6 +335,24 @@ def test_training_with_one_hot_messages_is_refused_where_it_would_not_fit_and_on
     monkeypatch.setattr(flags, "available_bytes", lambda: (used_mib - 392) * 9 // 10 << 20)
     with pytest.raises(ConfigError, match=f"invalid bits={bits}: one-hot messages over 2\\^{bits} words"):
         flags.check_train(cfg)
+
+
+def test_training_that_evaluates_held_out_episodes_counts_their_one_hot_tables(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--held-out-every N` plays `held_out_episodes` (1,000) side by side between batches, beside the 2^K-wide
+    parameters and a copy of the policy: at 16 bits, 2 MB of one-hot tables per episode, 2 GB for the evaluation
+    against 0.3 GB for a batch of 128. The check counted the training batch alone and let such a run start."""
+    from bitcomm.commands import flags
+    from bitcomm.learn.config import make_train_config
+
+    task = TaskConfig(EnvConfig(), ChannelConfig(bits=16))
+    plain = make_train_config("reinforced", task, messages="onehot")
+    monkeypatch.setattr(flags, "available_bytes", lambda: 2 * flags.onehot_bytes(plain) + (1 << 30))
+    flags.check_train(plain)  # the training alone fits
+    held = make_train_config("reinforced", task, messages="onehot", held_out_every=1024)
+    with pytest.raises(ConfigError, match=r"invalid held-out-episodes=1000: 1000 episodes side by side on this task "
+                       r"with one-hot messages over 2\^16 words, beside the 2\^16-wide parameters"):  # fmt: skip
+        flags.check_train(held)
+    flags.check_train(dataclasses.replace(held, held_out_episodes=100))  # 0.2 GB of tables: it fits
 
 
 def test_a_one_hot_policy_too_wide_to_play_that_many_episodes_is_refused(

@@ -768,6 +768,41 @@ def test_the_memory_check_counts_what_an_env_run_holds(monkeypatch: pytest.Monke
         env_train.check_env([big])
 
 
+@pytest.mark.usefixtures("trust_test_envs")  # the run is read back
+def test_a_one_hot_env_run_too_wide_to_evaluate_that_many_episodes_is_refused_before_it_plays(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`bitcomm eval RUN` of a one-hot run on a wrapped env plays 256 episodes side by side, each acting on float32
+    tables of 2^K per agent (logits, softmax, cumulative sum, heard slots): the grid's eval counts them, this one
+    did not, and at 16-24 bits ran out of memory mid-play. Refused in one line naming --episodes, as are
+    `train --env --eval-episodes` and a study's evaluations before they train."""
+    from bitcomm.commands import flags
+    from bitcomm.learn.env_rollout import HELD_COPIES, step_bytes
+
+    run = str(tmp_path / "run")
+    argv = ["train", "--env", SPEC, "--messages", "onehot", "--bits", "10", "--num-envs", "8", "--hidden", "16"]
+    assert main([*argv, "--episodes", "8", "--out", run, "--quiet", "--eval-episodes", "0", "--threads", "1"]) == 0
+    layout = VecEnv(env_factory(config(channel={"bits": 10})), 1).layout
+    need = 256 * (flags.acting_bytes(2, 10, 1) + HELD_COPIES * step_bytes(layout))  # 8 MB of tables
+    monkeypatch.setattr(flags, "available_bytes", lambda: need - 1)
+    capsys.readouterr()
+    study = ["compare", "--env", SPEC, "--bits", "10", "--techniques", "improved-onehot", "--seeds", "1"]
+    refused = [
+        (["eval", run, "--episodes", "1000"], "episodes"),
+        ([*argv, "--eval-episodes", "1000", "--out", str(tmp_path / "t")], "eval-episodes"),
+        ([*study, "--eval-episodes", "1000", "--out", str(tmp_path / "c")], "eval-episodes"),
+    ]
+    for command, flag in refused:
+        assert main(command) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and len(err.strip().splitlines()) == 1, (out, err)
+        assert f"invalid {flag}=1000: 256 episodes side by side with one-hot messages over 2^10 words" in err
+    assert not (tmp_path / "t").exists() and not (tmp_path / "c").exists()  # refused before training
+    monkeypatch.setattr(flags, "available_bytes", lambda: need)
+    assert main(["eval", run, "--episodes", "1000"]) == 0
+    assert "1000 episodes, mean team return" in capsys.readouterr().out
+
+
 @pytest.mark.usefixtures("trust_test_envs")  # the run is read back: eval, --resume
 def test_cli_trains_and_evaluates_with_the_channel_cut(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = str(tmp_path / "run")

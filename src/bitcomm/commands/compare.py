@@ -184,7 +184,8 @@ def env_study(args: argparse.Namespace) -> tuple[Callable[..., dict[str, Any]], 
     base = env_train.env_config_from_args(args)
     cfg = EnvCompareConfig(base=base, **_common(args), seeds=args.seeds or ENV_STUDY_SEEDS)
     runs = plan(cfg)
-    env_train.check_env([typing.cast("EnvTrainConfig", r.train) for r in runs], processes=min(cfg.jobs, len(runs)))
+    configs = [typing.cast("EnvTrainConfig", r.train) for r in runs]
+    env_train.check_env(configs, processes=min(cfg.jobs, len(runs)), eval_episodes=cfg.eval_episodes)
     return run_env_compare, table_markdown, cfg
 
 

@@ -16,6 +16,7 @@ from bitcomm.commands.learning_flags import learning_overrides
 from bitcomm.errors import bad_value, plural
 
 if TYPE_CHECKING:
+    from bitcomm.envs.vector import EnvLayout
     from bitcomm.learn.env_config import EnvTrainConfig
 
 RENAMED = {"entropy_move": "entropy_action"}
@@ -111,14 +112,32 @@ def resumed_env_config(args: argparse.Namespace, out: Path) -> EnvTrainConfig:
     return dataclasses.replace(cfg, **{k: typed[k] for k in now if k in typed})
 
 
-def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1) -> None:
+def check_env_eval(cfg: EnvTrainConfig, layout: EnvLayout, episodes: int, flag: str) -> None:
+    """An evaluation of `episodes` by a one-hot policy (`evaluate_env`: `EVAL_CHUNK` at a time) whose first step,
+    with the float32 tables of 2^K per agent and episode it acts on, would not fit: one line naming `flag`, before
+    it plays (as `check_eval` on the grid). Its later steps are `play`'s to refuse, as an episode's length is not
+    known in advance (and without one-hot messages, so is its first step)."""
+    from bitcomm.commands.flags import acting_bytes, check_memory
+    from bitcomm.learn.env_eval import EVAL_CHUNK
+    from bitcomm.learn.env_rollout import HELD_COPIES, step_bytes
+
+    if cfg.messages != "onehot":
+        return
+    batch = min(episodes, EVAL_CHUNK)
+    need = batch * (acting_bytes(layout.n, cfg.channel.bits, layout.slots) + HELD_COPIES * step_bytes(layout))
+    what = f"{batch} episodes side by side with one-hot messages over 2^{cfg.channel.bits} words"
+    check_memory(flag, episodes, need, f"{what} ({layout.n} agents hearing {layout.slots} slot(s) each)")
+
+
+def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1, eval_episodes: int = 0) -> None:
     """Before a line is printed or a folder written: one copy of the runs' env built and its spaces read (a
     module that does not import, a factory that fails, a channel option or a space the learner cannot use is
     one line now, not after the run started), and what `processes` runs at once would hold checked against the
     memory available (as `check_train` on the grid): the networks (their first layers read the observation and
     the state), a batch's first step, and with one-hot messages the 2^K-wide layers and the tables a batch acts
-    on. An episode's length is not known in advance: `play` refuses a batch whose later steps would not fit.
-    `configs` share their env."""
+    on; then the evaluation of `eval_episodes` after training (`check_env_eval`, `--eval-episodes`). An episode's
+    length is not known in advance: `play` refuses a batch whose later steps would not fit. `configs` share
+    their env."""
     from bitcomm.commands.flags import acting_bytes, check_memory
     from bitcomm.envs.vector import EnvLayout
     from bitcomm.learn.env_rollout import HELD_COPIES, env_factory, step_bytes
@@ -146,6 +165,8 @@ def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1) -> None:
         else:
             what = f"{batch} episodes side by side, for one step ({seen})"
             check_memory("num-envs", cfg.num_envs, onehot + buffers, what)
+        if eval_episodes:
+            check_env_eval(cfg, layout, eval_episodes, "eval-episodes")
 
 
 def train(args: argparse.Namespace, threads: int | None = None) -> int:
@@ -168,7 +189,7 @@ def train(args: argparse.Namespace, threads: int | None = None) -> int:
     module = cfg.env.partition(":")[0].rpartition(".")[2]
     out = args.out or Path("runs") / f"env-{module}-{cfg.estimator}-{cfg.messages}-s{cfg.seed}"
     check_start(out, args.resume)  # before a line is printed
-    check_env([cfg])
+    check_env([cfg], eval_episodes=args.eval_episodes)  # the final evaluation's, before training rather than after
     print(
         f"run folder: {out}{' (resumed)' if args.resume else ''}; env {cfg.env}; "
         f"torch threads: {threads or 'OMP_NUM_THREADS'}",
@@ -204,9 +225,12 @@ def drop_prob_of(args: argparse.Namespace) -> float | None:
 
 def evaluate(args: argparse.Namespace) -> int:
     """`bitcomm eval RUN` on a wrapped-env run: only --drop-prob of the task flags applies."""
-    from bitcomm.learn.env_eval import evaluate_env
+    from bitcomm.learn.env_eval import evaluate_env_policy, load_env_policy
 
-    result = evaluate_env(args.run_path, args.episodes, args.seed, drop_prob_of(args), greedy=args.greedy)
+    drop_prob = drop_prob_of(args)
+    cfg, policy = load_env_policy(args.run_path)
+    check_env_eval(cfg, policy.layout, args.episodes, "episodes")
+    result = evaluate_env_policy(cfg, policy, args.episodes, args.seed, drop_prob, greedy=args.greedy)
     print_env_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
     return 0
 

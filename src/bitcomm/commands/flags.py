@@ -204,12 +204,24 @@ def check_memory(flag: str, value: object, need: int, what: str) -> None:
         )
 
 
-def check_play(task: TaskConfig, flag: str, value: object, episodes: int, steps: int = 1, onehot: bool = False) -> None:
-    """`check_memory` for `episodes` played side by side on `task` (`onehot`: by a policy with one-hot messages)."""
+def check_play(
+    task: TaskConfig,
+    flag: str,
+    value: object,
+    episodes: int,
+    steps: int = 1,
+    onehot: bool = False,
+    beside: int = 0,
+    held_by: str = "",
+) -> None:
+    """`check_memory` for `episodes` played side by side on `task` (`onehot`: by a policy with one-hot messages),
+    with `beside` bytes held while they play (`held_by` says by what)."""
     what = f"{episodes} episodes side by side on this task"
     if onehot:
         what += f" with one-hot messages over 2^{task.channel.bits} words"
-    check_memory(flag, value, play_bytes(task, episodes, steps, onehot), what)
+    if held_by:
+        what += f", beside {held_by}"
+    check_memory(flag, value, beside + play_bytes(task, episodes, steps, onehot), what)
 
 
 def check_eval(task: TaskConfig, episodes: int, onehot: bool = False, flag: str = "episodes") -> None:
@@ -221,7 +233,9 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
     """Memory of `processes` training runs at once: rollout buffers, and with one-hot messages the parameters
     2^K wide (which is what 24 bits of one-hot messages ran out of: 64 GB) and the tables a batch acts on.
     Measured peaks above a 4-bit run's (10x10, 128 episodes a batch, 3 batches): 124 / 462 / 1,809 MiB at 14 /
-    16 / 18 bits (547 at 16 with the standard estimator) against 112 / 448 / 1,792 (512) counted."""
+    16 / 18 bits (547 at 16 with the standard estimator) against 112 / 448 / 1,792 (512) counted. A run that
+    evaluates held-out episodes (`held_out_every`) plays them between batches, `EVAL_BATCH` at a time, beside
+    the parameters and a float32 copy of the policy (`bitcomm.learn.held_out`): checked on its own."""
     task = cfg.training_task
     for name, most in (("workers", MAX_JOBS), ("epochs", MAX_REPEATS)):
         if getattr(cfg, name) > most:
@@ -232,15 +246,22 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
     check_memory(wider.replace("_", "-"), getattr(cfg.model, wider), learners * network_bytes(cfg), "the networks")
     batch = cfg.num_envs * workers * processes
     rollouts = play_bytes(task, batch, task.env.max_steps)
-    onehot = 0
+    wide = onehot = 0
     if cfg.model.messages == "onehot":
-        onehot = learners * onehot_bytes(cfg) + batch * acting_bytes(task.env.n_agents, task.channel.bits, task.slots)
+        wide = learners * onehot_bytes(cfg)
+        onehot = wide + batch * acting_bytes(task.env.n_agents, task.channel.bits, task.slots)
     if onehot > rollouts:
         what = f"one-hot messages over 2^{task.channel.bits} words ({learners} learner(s))"
         check_memory("bits", task.channel.bits, onehot + rollouts, what)
     else:
         what = f"{batch} episodes of {task.env.max_steps} steps on a {task.env.size}x{task.env.size} grid"
         check_memory("num-envs", cfg.num_envs, onehot + rollouts, what)
+    if cfg.held_out_every:
+        held = processes * min(cfg.held_out_episodes, EVAL_BATCH)
+        copy = wide // 4  # the policy's, without gradient or Adam moments (the standard critic's input too: at most)
+        by = f"the 2^{task.channel.bits}-wide parameters and a copy of the policy ({learners} learner(s))"
+        check_play(cfg.task, "held-out-episodes", cfg.held_out_episodes, held, onehot=wide > 0, beside=wide + copy,
+                   held_by=by if wide else "")  # fmt: skip
 
 
 THREADS_HELP = "torch threads (default: the cores not busy by the load average, or OMP_NUM_THREADS when set)"

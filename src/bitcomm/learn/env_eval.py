@@ -82,6 +82,19 @@ def evaluate_env(
     """Play `episodes` seeded episodes with the policy of `path` on its env (channel drops changed by `drop_prob`;
     `typed_env` as in `load_env_policy`)."""
     cfg, policy = load_env_policy(path, typed_env)
+    return evaluate_env_policy(cfg, policy, episodes, seed, drop_prob, greedy)
+
+
+def evaluate_env_policy(
+    cfg: EnvTrainConfig,
+    policy: MlpPolicy,
+    episodes: int,
+    seed: int,
+    drop_prob: float | None = None,
+    greedy: bool = False,
+) -> EnvEvalResult:
+    """`evaluate_env` for a policy `load_env_policy` read (so `bitcomm eval` can check, from its layout, that
+    `min(episodes, EVAL_CHUNK)` episodes side by side fit before they play)."""
     generator = torch.Generator().manual_seed(seed)
     returns: list[np.ndarray] = []
     lengths: list[np.ndarray] = []
