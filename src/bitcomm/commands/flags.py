@@ -259,9 +259,20 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
     if cfg.held_out_every:
         held = processes * min(cfg.held_out_episodes, EVAL_BATCH)
         copy = wide // 4  # the policy's, without gradient or Adam moments (the standard critic's input too: at most)
-        by = f"the 2^{task.channel.bits}-wide parameters and a copy of the policy ({learners} learner(s))"
-        check_play(cfg.task, "held-out-episodes", cfg.held_out_episodes, held, onehot=wide > 0, beside=wide + copy,
-                   held_by=by if wide else "")  # fmt: skip
+        by = (
+            f"the 2^{task.channel.bits}-wide parameters and a copy of the policy ({learners} learner(s))"
+            if wide
+            else ""
+        )
+        check_play(
+            cfg.task,
+            "held-out-episodes",
+            cfg.held_out_episodes,
+            held,
+            onehot=wide > 0,
+            beside=wide + copy,
+            held_by=by,
+        )
 
 
 THREADS_HELP = "torch threads (default: the cores not busy by the load average, or OMP_NUM_THREADS when set)"
