@@ -92,6 +92,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
             "entropy-message",
             "entropy-message-marginal",
             "message-divergence",
+            "message-logit-decay",
             "sharpen-messages",
             "sharpen-moves",
             "uniform-move",

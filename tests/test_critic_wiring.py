@@ -216,9 +216,12 @@ def test_pure_recipes_give_the_policy_no_gradient_but_the_estimators(recipe: str
     assert make_train_config(recipe).pure
 
 
-@pytest.mark.parametrize(("option", "weight"), [("entropy_message_marginal", 0.1), ("message_divergence", 1.0)])
+@pytest.mark.parametrize(
+    ("option", "weight"),
+    [("entropy_message_marginal", 0.1), ("message_divergence", 1.0), ("message_logit_decay", 0.001)],
+)
 def test_the_bonuses_on_the_senders_code_reach_the_message_head_alone(option: str, weight: float) -> None:
-    """The marginal message entropy and the nearby goals' divergence are information terms of the senders' own
+    """The marginal message entropy, the nearby goals' divergence and the logit decay are terms of the senders' own
     message distributions: without advantages they move the message head and leave the movement head still, as
     the per-message entropy bonus does; the recipe stays pure."""
     grads = policy_gradients_after_one_step("reinforced", zero_advantages=True, **{option: weight})

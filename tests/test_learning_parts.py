@@ -802,3 +802,34 @@ def test_a_clip_wider_than_float32_clips_nothing() -> None:
     unclipped = -((torch.exp(logp - old) * a) * 2).sum() / valid.sum()
     loss = clipped_policy_loss(logp, logp, old, old, adv, valid, clip=1e300)
     assert torch.isfinite(loss) and torch.allclose(loss, unclipped)
+
+
+def test_the_logit_decay_pulls_a_saturated_word_where_the_entropy_no_longer_does():
+    """`message_logit_decay` is n w times the mean square of every goal cell's message logits; on words whose bits
+    have saturated (every goal on one word, logits of 30) the per-message entropy's gradient has all but vanished, and
+    the decay's has not."""
+    from types import SimpleNamespace
+    from typing import cast
+
+    from bitcomm.learn.objectives import MessageLogitDecay, StepBatch, goal_planes
+
+    cfg = make_train_config("reinforced", TINY, num_envs=4, message_logit_decay=0.01)
+    policy = Learner(cfg).policy
+    assert next(t for t in Learner(cfg).terms if t.name == "message_logit_decay").weight == 0.01
+    with torch.no_grad():  # every goal on one word, each bit saturated
+        policy.message_logits.weight.zero_()
+        policy.message_logits.bias.copy_(torch.tensor([30.0, -30.0, 30.0]))
+    batch = cast(StepBatch, SimpleNamespace(policy=policy, n=2, routes=SimpleNamespace(size=4)))  # what it reads
+    loss, figures = MessageLogitDecay(0.01)(batch)
+    logits = policy.observed_message_logits(goal_planes(4))
+    assert logits.abs().min().item() > 20
+    assert loss.item() == pytest.approx(2 * 0.01 * logits.square().mean().item(), rel=1e-6)
+    assert figures["charts/message_logit_abs"] == pytest.approx(logits.abs().mean().item(), rel=1e-6)
+    decay_grad = torch.autograd.grad(loss, policy.message_logits.bias)[0]
+    entropy = 2 * 0.01 * policy.head.entropy(logits).mean()
+    entropy_grad = torch.autograd.grad(entropy, policy.message_logits.bias)[0]
+    assert entropy_grad.abs().max().item() < 1e-6 < 1e-3 < decay_grad.abs().max().item()
+    with pytest.raises(ConfigError, match="message-logit-decay=0.01: acts only with --message-reads observed"):
+        make_train_config("reinforced", TINY, message_logit_decay=0.01, message_reads="all")
+    with pytest.raises(ConfigError, match="message-logit-decay=-1"):
+        make_train_config("reinforced", TINY, message_logit_decay=-1.0)

@@ -32,6 +32,7 @@ ENTROPY_WEIGHTS = (
     "entropy_message",
     "entropy_message_marginal",
     "message_divergence",
+    "message_logit_decay",
     "sharpen_messages",
     "sharpen_moves",
     "uniform_move",
@@ -199,6 +200,14 @@ class TrainConfig:
     message_divergence_radius: int = 3
     """How far apart (Manhattan, in cells) two goals may be for `message_divergence` to count their pair; where a grid
     has more than 1,024 such pairs, a uniform draw of 1,024 of them enters each step."""
+    message_logit_decay: float = 0.0
+    """Weight of a pull of the message logits toward 0: the mean square of every goal cell's message logits, for a
+    message head that reads only the goal it observes (`message_reads` `observed`; off: 0). Why: once two nearby goals
+    put nearly all their mass on one word, every term of the probabilities (the policy gradient, the entropies, the
+    divergence) has a vanishing gradient through the saturated bits, and greedy play stalls between the two goals for
+    good (docs/tuning.md sessions 49 and 55); this pull does not fade as a bit saturates, so the logits stay where the
+    policy gradient still moves them. A term of the senders' own logits with no target word, so a run stays pure. At
+    0.001 on the paper's task: docs/tuning.md session 56."""
     anneal_episodes: int = 0
     """Episodes over which the schedules (`anneal_lr`, `anneal_entropy`, `anneal_move_entropy`) decay (0: the
     budget, `episodes`): a run trained in pieces (each resumed with a larger budget, as benchmarks/solve.py does)
@@ -298,6 +307,7 @@ class TrainConfig:
             check_number(name, getattr(self, name), 0.0)
         check_marginal_bits(self.entropy_message_marginal, self.task.channel.bits)
         self._check_message_divergence()
+        self._check_message_logit_decay()
         if 0 < self.train_max_steps <= self.task.channel.delay:
             raise bad_value("delay", self.task.channel.delay, f"must be < train_max_steps ({self.train_max_steps})")
         if 0 < self.train_max_steps <= self.task.env.act_delay:  # else training_task's EnvConfig blames max_steps
@@ -326,6 +336,14 @@ class TrainConfig:
                 "held-messages",
                 self.held_messages,
                 "acts only with --message-reads observed (a word distribution an episode keeps); leave it at 0",
+            )
+
+    def _check_message_logit_decay(self) -> None:
+        if self.message_logit_decay and self.model.message_reads != "observed":
+            raise bad_value(
+                "message-logit-decay",
+                self.message_logit_decay,
+                "acts only with --message-reads observed (a word distribution per goal); leave it at 0",
             )
 
     def _check_message_divergence(self) -> None:

@@ -16,6 +16,9 @@ Reinforcement (SPEC section 7; every gradient reaching a policy head comes from 
                      for states that use different messages (`entropy_message_marginal`, off by default)
     Nearby divergence -n w mean_{g, g'} JS(Pm(. | g), Pm(. | g')) over pairs of goal cells at most r apart: a
                      bonus for telling nearby goals apart (`message_divergence`; a head that reads only the goal)
+    Logit decay      n w mean_g mean_k logit_k(g)^2 over every goal cell g: a pull of the message logits toward 0
+                     that, unlike an entropy, does not fade as a word saturates (`message_logit_decay`; a head that
+                     reads only the goal)
     UniformMove      -n w mean_a log pi(a) = n w (KL(U || pi) + log 5): an entropy-type pull toward
                      uniform moves that, unlike H, grows without bound as a move's probability falls
 
@@ -255,16 +258,24 @@ class MarginalMessageEntropy:
 
 
 @functools.cache
+def goal_planes(size: int) -> torch.Tensor:
+    """An observation of each goal cell `(S^2, 2, S, S)`: its observed plane, which is all a head that reads only
+    that plane reads."""
+    cells = torch.arange(size * size)
+    planes = torch.zeros(size * size, 2, size, size)
+    planes[cells, OBSERVED_PLANE, cells // size, cells % size] = 1.0
+    return planes
+
+
+@functools.cache
 def nearby_goals(size: int, radius: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """An observation of each goal cell `(S^2, 2, S, S)` (its observed plane; a head that reads only that plane
-    reads nothing else), and every pair of goal cells at most `radius` apart (Manhattan), each once: `(P,)`, `(P,)`."""
+    """`goal_planes(size)`, and every pair of goal cells at most `radius` apart (Manhattan), each once: `(P,)`,
+    `(P,)`."""
     cells = torch.arange(size * size)
     row, col = cells // size, cells % size
-    planes = torch.zeros(size * size, 2, size, size)
-    planes[cells, OBSERVED_PLANE, row, col] = 1.0
     apart = (row[:, None] - row[None]).abs() + (col[:, None] - col[None]).abs()
     first, second = torch.nonzero((apart <= radius) & (cells[:, None] < cells[None]), as_tuple=True)
-    return planes, first, second
+    return goal_planes(size), first, second
 
 
 @dataclass(frozen=True)
@@ -286,6 +297,21 @@ class NearbyMessageDivergence:
         logits = b.policy.observed_message_logits(planes)
         js = pair_divergence(b.policy.head, logits, first, second).mean()
         return -(b.n * self.weight) * js, {f"charts/{self.name}": js.item()}
+
+
+@dataclass(frozen=True)
+class MessageLogitDecay:
+    """n w mean_g mean_k logit_k(g)^2 over every goal cell g's message logits, of a message head that reads only the
+    goal its sender observes (`TrainConfig.message_logit_decay`); logs the mean |logit| as
+    `charts/message_logit_abs`."""
+
+    weight: float
+    name: str = "message_logit_decay"
+    auxiliary: bool = False
+
+    def __call__(self, b: StepBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        logits = b.policy.observed_message_logits(goal_planes(b.routes.size))
+        return (b.n * self.weight) * logits.square().mean(), {"charts/message_logit_abs": logits.abs().mean().item()}
 
 
 @dataclass(frozen=True)
@@ -418,6 +444,8 @@ def policy_terms(
         terms.append(MarginalMessageEntropy(cfg.entropy_message_marginal * message_scale))
     if cfg.message_divergence > 0:
         terms.append(NearbyMessageDivergence(cfg.message_divergence * message_scale, cfg.message_divergence_radius))
+    if cfg.message_logit_decay > 0:
+        terms.append(MessageLogitDecay(cfg.message_logit_decay * message_scale))
     if cfg.uniform_move > 0:
         terms.append(UniformMove(cfg.uniform_move * move_scale))
     if cfg.goal_coef > 0:

@@ -61,6 +61,7 @@ _REINFORCED: dict[str, Any] = dict(
     greedy_senders=0.5,
     senders_wait_below=1.15,
     message_divergence=1.0,
+    message_logit_decay=0.0,
     held_messages=0.25,
 )
 
@@ -116,6 +117,7 @@ RECIPES: dict[str, dict[str, Any]] = {
         greedy_senders=0.0,
         senders_wait_below=0.0,
         message_divergence=0.0,
+        message_logit_decay=0.0,
         held_messages=0.0,
     ),
 }
