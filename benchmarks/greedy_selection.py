@@ -12,6 +12,8 @@ one JSON object.
 
     python benchmarks/greedy_selection.py --seeds 28 --jobs 2 --held-out-every 0 --eval-episodes 2000 \\
         --out runs/greedy-seeds                                   # the README's count of seeds within 1.05x
+    python benchmarks/greedy_selection.py --seeds 28 --jobs 2 --held-out-every 0 --eval-episodes 2000 \\
+        --set message_logit_decay=0 --out runs/greedy-seeds-no-decay  # any learning option (bitcomm train --help)
     python benchmarks/greedy_selection.py --seeds 16 --jobs 2 --episodes 200000 --held-out-every 8192 \\
         --eval-episodes 10000 --out runs/greedy-selection
 """
@@ -26,6 +28,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from set_flag import add_set_flag, parse_set  # benchmarks/ is not a package: the script's folder is on the path
 from solve import (  # benchmarks/ is not a package: run as a script, it is on sys.path
     add_seed_flags,
     check_seed_flags,
@@ -53,6 +56,7 @@ def _config(args: dict[str, Any], seed: int) -> Any:
         held_out_episodes=args["held_out_episodes"],
         train_max_steps=args.get("train_max_steps"),  # None: the recipe's cut
         keep_checkpoints=1,
+        **dict(args.get("set", ())),
     )
 
 
@@ -134,11 +138,13 @@ def main() -> None:
     ap.add_argument("--held-out-episodes", type=int, default=1000)
     ap.add_argument("--eval-episodes", type=int, default=10_000, help="test episodes (seed 12345) per checkpoint")
     ap.add_argument("--out", type=Path, default=Path("runs/greedy-selection"))
+    add_set_flag(ap)
     a = ap.parse_args()
     try:  # bad input is one line before any seed starts
+        overrides = parse_set(ap, a.set)
         check_seed_flags(a, "eval_episodes", "episodes")
         check_int("held_out_every", a.held_out_every, 0)
-        args = {**vars(a), "out": str(a.out)}
+        args = {**vars(a), "out": str(a.out), "set": overrides}
         task = _config(args, a.first_seed).task
         oracle = evaluate(OraclePolicy(task), task, a.eval_episodes, EVAL_SEED).mean_episode_length
     except ConfigError as err:

@@ -392,16 +392,20 @@ def test_greedy_selection_measures_latest_and_best_and_keeps_measured_seeds(tmp_
     assert sum(summary["over_seeds"]["best_against_latest"].values()) == 2
     again = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
     assert again.returncode == 0 and again.stdout.count("(kept)") == 2, again.stderr
-    # without a held-out set (the default recipe's runs): the latest checkpoint only, greedy and sampled
-    plain = [*argv[:-1], str(tmp_path / "plain")]
+    # without a held-out set (the default recipe's runs): the latest checkpoint only, greedy and sampled; `--set`
+    # trains with any learning option
+    plain = [*argv[:-1], str(tmp_path / "plain"), "--set", "uniform_move=0.02"]
     plain[plain.index("--held-out-every") + 1] = "0"
     out = subprocess.run(plain, cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 0, out.stderr
+    assert json.loads((tmp_path / "plain" / "seed0" / "config.json").read_text())["uniform_move"] == 0.02
     summary = json.loads(out.stdout.strip().splitlines()[-1])
     assert all(set(r) == {"seed", "run", "latest"} and r["latest"]["sampled"] >= 1 for r in summary["seeds"])
     assert set(summary["over_seeds"]) == {"latest"} and summary["over_seeds"]["latest"]["median_sampled"] >= 1
     bad = subprocess.run([*argv[:2], "--held-out-every", "-1"], cwd=ROOT, capture_output=True, text=True, env=env)
     assert bad.returncode == 2 and "held-out-every=-1" in bad.stderr and "Traceback" not in bad.stderr
+    bad = subprocess.run([*argv[:2], "--set", "no_such=1"], cwd=ROOT, capture_output=True, text=True, env=env)
+    assert bad.returncode == 2 and "--set 'no_such=1'" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_training_cut_trains_each_cut_on_the_same_seeds_and_keeps_measured_runs(tmp_path: Path) -> None:

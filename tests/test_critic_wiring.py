@@ -337,17 +337,18 @@ def test_the_recipe_waits_for_the_protocol_only_where_the_oracle_can_play() -> N
 def test_the_recipe_tells_nearby_goals_apart_only_where_the_channel_has_words_to_spare(
     size: int, bits: int, spare: bool
 ) -> None:
-    """The divergence and held words are the recipe's where 2^K exceeds the grid's cells (the paper's task: 128
-    words, 100 cells); where every word must name a goal, or the head reads more than the goal, both are off, and
-    an explicit value still applies."""
+    """The divergence, held words and logit decay are the recipe's where 2^K exceeds the grid's cells (the paper's
+    task: 128 words, 100 cells); where every word must name a goal, or the head reads more than the goal, all three
+    are off, and an explicit value still applies."""
     task = TaskConfig(EnvConfig(size=size), ChannelConfig(bits=bits))
     cfg = make_train_config("reinforced", task)
-    assert (cfg.message_divergence, cfg.held_messages) == ((1.0, 0.25) if spare else (0.0, 0.0))
+    trio = ("message_divergence", "held_messages", "message_logit_decay")
+    assert tuple(getattr(cfg, name) for name in trio) == ((1.0, 0.25, 0.001) if spare else (0.0, 0.0, 0.0))
     assert spare_words(task) is spare
     reads_all = make_train_config("reinforced", task, message_reads="all")
-    assert (reads_all.message_divergence, reads_all.held_messages) == (0.0, 0.0)
+    assert tuple(getattr(reads_all, name) for name in trio) == (0.0, 0.0, 0.0)
     for recipe in ("supervised", "paper"):
-        assert make_train_config(recipe, task).message_divergence == make_train_config(recipe, task).held_messages == 0
+        assert not any(getattr(make_train_config(recipe, task), name) for name in trio)
     if bits <= MAX_MARGINAL_BITS:
         assert make_train_config("reinforced", task, message_divergence=0.5, held_messages=0.1).held_messages == 0.1
 

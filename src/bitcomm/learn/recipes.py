@@ -20,7 +20,9 @@ Plain data with no heavy imports, so the command line can list the names without
   teach words about to change; since session 49, where the channel has words to spare (2^K above the grid's
   cells, as on the paper's task), a bonus for telling nearby goals apart (`message_divergence`, session 43) and
   a quarter of each batch sending one held word per episode (`held_messages`, session 44), so that no two nearby
-  goals end on one word, which stalls greedy play (each option named and measured in docs/tuning.md).
+  goals end on one word, which stalls greedy play, and since session 56, where those are on, a pull of every goal's
+  message logits toward 0 (`message_logit_decay`), so that a word two goals share still has a gradient (each option
+  named and measured in docs/tuning.md).
 - `supervised`: `reinforced` plus three auxiliary losses that hand the sender a protocol (a
   self-labelled code book, a privileged goal label for the receiver's message decoder, and the
   sender's grounding in the goal it sees). Fast, but its messages are supervised: it bypasses both
@@ -61,7 +63,7 @@ _REINFORCED: dict[str, Any] = dict(
     greedy_senders=0.5,
     senders_wait_below=1.15,
     message_divergence=1.0,
-    message_logit_decay=0.0,
+    message_logit_decay=0.001,
     held_messages=0.25,
 )
 
@@ -84,6 +86,7 @@ _SUPERVISED: dict[str, Any] = dict(
     greedy_senders=0.0,
     senders_wait_below=0.0,
     message_divergence=0.0,
+    message_logit_decay=0.0,
     held_messages=0.0,
 )
 """The former `fast` recipe, as measured in docs/tuning.md sessions 1-7."""
@@ -128,11 +131,12 @@ WIDE_MESSAGES: dict[str, Any] = dict(entropy_message_marginal=0.0, entropy_messa
 """What a recipe's marginal message entropy bonus gives way to on messages of more than 12 bits, where the
 exact sum over all 2^K messages is out of reach: the per-message bonus (`reinforced`'s of sessions 8-17)."""
 
-NO_SPARE_WORDS: dict[str, Any] = dict(message_divergence=0.0, held_messages=0.0)
-"""What a recipe's bonus for telling nearby goals apart and its held words give way to where the channel has no
-word to spare (2^K at most the grid's cells: every word must name a goal) or the message head reads more than the
-goal: with no free word the bonus can only push a shared word onto another goal's, and there both cost play
-(docs/tuning.md sessions 45 and 49)."""
+NO_SPARE_WORDS: dict[str, Any] = dict(message_divergence=0.0, held_messages=0.0, message_logit_decay=0.0)
+"""What a recipe's bonus for telling nearby goals apart, its held words and its logit decay give way to where the
+channel has no word to spare (2^K at most the grid's cells: every word must name a goal) or the message head reads
+more than the goal: with no free word the bonus can only push a shared word onto another goal's, and there both cost
+play (docs/tuning.md sessions 45 and 49); the decay, which keeps a shared word's bits movable, was measured only
+beside the other two (session 56)."""
 
 AUXILIARY = ("goal_coef", "seen_coef", "code_coef")
 """Options whose losses reach a policy head with a target other than the return (SPEC section 7)."""
