@@ -309,7 +309,7 @@ class TrainConfig:
             check_number(name, getattr(self, name), 0.0)
         check_marginal_bits(self.entropy_message_marginal, self.task.channel.bits)
         self._check_message_divergence()
-        self._check_message_logit_decay()
+        self._check_observed_head("message_logit_decay", "a word distribution per goal")
         if 0 < self.train_max_steps <= self.task.channel.delay:
             raise bad_value("delay", self.task.channel.delay, f"must be < train_max_steps ({self.train_max_steps})")
         if 0 < self.train_max_steps <= self.task.env.act_delay:  # else training_task's EnvConfig blames max_steps
@@ -333,20 +333,14 @@ class TrainConfig:
             if start != 0.5 and not getattr(self, name):
                 flag = name.replace("_", "-")
                 raise bad_value(f"{flag}-from", start, f"acts only with --{flag} > 0; leave it at 0.5")
-        if self.held_messages and self.model.message_reads != "observed":
-            raise bad_value(
-                "held-messages",
-                self.held_messages,
-                "acts only with --message-reads observed (a word distribution an episode keeps); leave it at 0",
-            )
+        self._check_observed_head("held_messages", "a word distribution an episode keeps")
 
-    def _check_message_logit_decay(self) -> None:
-        if self.message_logit_decay and self.model.message_reads != "observed":
-            raise bad_value(
-                "message-logit-decay",
-                self.message_logit_decay,
-                "acts only with --message-reads observed (a word distribution per goal); leave it at 0",
-            )
+    def _check_observed_head(self, name: str, why: str) -> None:
+        """One line for option `name` set with a message head that reads more than the goal its sender observes."""
+        value = getattr(self, name)
+        if value and self.model.message_reads != "observed":
+            flag = name.replace("_", "-")
+            raise bad_value(flag, value, f"acts only with --message-reads observed ({why}); leave it at 0")
 
     def _check_message_divergence(self) -> None:
         check_int("message_divergence_radius", self.message_divergence_radius, 1)
@@ -359,12 +353,7 @@ class TrainConfig:
                 )
             return
         check_marginal_bits(self.message_divergence, self.task.channel.bits, "message-divergence")
-        if self.model.message_reads != "observed":
-            raise bad_value(
-                "message-divergence",
-                self.message_divergence,
-                "acts only with --message-reads observed (a word distribution per goal); leave it at 0",
-            )
+        self._check_observed_head("message_divergence", "a word distribution per goal")
 
     def greedy_sender_episodes(self, episodes: int, formed: float | None = 0.0) -> int:
         """How many of the next batch's episodes (its first columns) `greedy_senders` plays, `episodes` played and
