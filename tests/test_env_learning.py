@@ -746,6 +746,27 @@ def test_a_batch_whose_episodes_outgrow_memory_is_one_line_before_it_does(
                     np.random.SeedSequence(0), None).length) == 8  # fmt: skip
 
 
+def test_a_one_hot_batch_counts_the_tables_it_acts_on_as_it_plays(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A one-hot policy acts on float32 tables of 2^K per agent and episode at every step (logits, softmax,
+    cumulative sum, heard slots): the commands count them before they play, and `play`'s own guard did not, so a
+    batch that fit its steps and not its tables ran out of memory mid-episode. Refused at the step that would not
+    fit with them, naming them."""
+    from bitcomm.learn import env_rollout
+    from bitcomm.memory import acting_bytes
+
+    cfg = config(env=f"{__name__}:WideEnv", env_kwargs={"width": 1000, "steps": 50}, messages="onehot",
+                 channel={"bits": 12})  # fmt: skip
+    layout = EnvLayout.of(env_factory(cfg)())
+    per_step, tables = env_rollout.held_step_bytes(layout, 8), 8 * acting_bytes(2, 12, 1)
+    assert tables > per_step  # without them, the batch would pass step 11
+    policy = EnvLearner(cfg, layout).policy
+    monkeypatch.setattr(env_rollout, "available_bytes", lambda: 10 * per_step + tables + 1)
+    with pytest.raises(ConfigError, match=r"outgrow memory at step 11 .* besides 0\.00 GB of one-hot tables it"):
+        play(VecEnv(env_factory(cfg), 8), policy, np.random.SeedSequence(0), None)
+    monkeypatch.setattr(env_rollout, "available_bytes", lambda: 50 * per_step + tables)  # 50 steps: it fits
+    assert len(play(VecEnv(env_factory(cfg), 8), policy, np.random.SeedSequence(0), None).length) == 8
+
+
 def test_the_memory_check_counts_what_an_env_run_holds(monkeypatch: pytest.MonkeyPatch) -> None:
     """Before a line is printed: the networks' first layers read the observation and the state (a wide env's take
     GBs), a batch's first step, and with one-hot messages the float32 tables of 2^K per agent and episode a batch
@@ -778,12 +799,13 @@ def test_a_one_hot_env_run_too_wide_to_evaluate_that_many_episodes_is_refused_be
     `train --env --eval-episodes` and a study's evaluations before they train."""
     from bitcomm.commands import flags
     from bitcomm.learn.env_rollout import HELD_COPIES, step_bytes
+    from bitcomm.memory import acting_bytes
 
     run = str(tmp_path / "run")
     argv = ["train", "--env", SPEC, "--messages", "onehot", "--bits", "10", "--num-envs", "8", "--hidden", "16"]
     assert main([*argv, "--episodes", "8", "--out", run, "--quiet", "--eval-episodes", "0", "--threads", "1"]) == 0
     layout = VecEnv(env_factory(config(channel={"bits": 10})), 1).layout
-    need = 256 * (flags.acting_bytes(2, 10, 1) + HELD_COPIES * step_bytes(layout))  # 8 MB of tables
+    need = 256 * (acting_bytes(2, 10, 1) + HELD_COPIES * step_bytes(layout))  # 8 MB of tables
     monkeypatch.setattr(flags, "available_bytes", lambda: need - 1)
     capsys.readouterr()
     study = ["compare", "--env", SPEC, "--bits", "10", "--techniques", "improved-onehot", "--seeds", "1"]

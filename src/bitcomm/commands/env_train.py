@@ -117,14 +117,15 @@ def check_env_eval(cfg: EnvTrainConfig, layout: EnvLayout, episodes: int, flag: 
     with the float32 tables of 2^K per agent and episode it acts on, would not fit: one line naming `flag`, before
     it plays (as `check_eval` on the grid). Its later steps are `play`'s to refuse, as an episode's length is not
     known in advance (and without one-hot messages, so is its first step)."""
-    from bitcomm.commands.flags import acting_bytes, check_memory
+    from bitcomm.commands.flags import check_memory
     from bitcomm.learn.env_eval import EVAL_CHUNK
-    from bitcomm.learn.env_rollout import HELD_COPIES, step_bytes
+    from bitcomm.learn.env_rollout import held_step_bytes
+    from bitcomm.memory import acting_bytes
 
     if cfg.messages != "onehot":
         return
     batch = min(episodes, EVAL_CHUNK)
-    need = batch * (acting_bytes(layout.n, cfg.channel.bits, layout.slots) + HELD_COPIES * step_bytes(layout))
+    need = batch * acting_bytes(layout.n, cfg.channel.bits, layout.slots) + held_step_bytes(layout, batch)
     what = f"{batch} episodes side by side with one-hot messages over 2^{cfg.channel.bits} words"
     check_memory(flag, episodes, need, f"{what} ({layout.n} agents hearing {layout.slots} slot(s) each)")
 
@@ -138,9 +139,10 @@ def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1, eval_episod
     on; then the evaluation of `eval_episodes` after training (`check_env_eval`, `--eval-episodes`). An episode's
     length is not known in advance: `play` refuses a batch whose later steps would not fit. `configs` share
     their env."""
-    from bitcomm.commands.flags import acting_bytes, check_memory
+    from bitcomm.commands.flags import check_memory
     from bitcomm.envs.vector import EnvLayout
-    from bitcomm.learn.env_rollout import HELD_COPIES, env_factory, step_bytes
+    from bitcomm.learn.env_rollout import env_factory, held_step_bytes
+    from bitcomm.memory import acting_bytes
 
     env = env_factory(configs[0])()
     try:
@@ -153,7 +155,7 @@ def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1, eval_episod
         layers = (layout.obs_dim + layout.state_size) * h[0] + 2 * sum(a * b for a, b in zip(h, h[1:], strict=False))
         check_memory("hidden", h[0], processes * layers * 16, f"the networks ({seen}; {processes} run(s) at once)")
         batch = processes * cfg.num_envs
-        buffers = processes * layers * 16 + HELD_COPIES * batch * step_bytes(layout)
+        buffers = processes * layers * 16 + held_step_bytes(layout, batch)
         onehot = 0
         if cfg.messages == "onehot":  # the policy's output and message input, V1's message input (x16: Adam)
             readers = 2 if cfg.estimator == "standard" else 1

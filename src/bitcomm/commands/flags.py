@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from bitcomm.config import MAX_EVAL_EPISODES, MAX_SEED
 from bitcomm.errors import bad_value
-from bitcomm.memory import BYTES_PER_GB, available_bytes
+from bitcomm.memory import BYTES_PER_GB, acting_bytes, available_bytes
 
 if TYPE_CHECKING:
     from bitcomm.config import TaskConfig
@@ -167,12 +167,6 @@ def play_bytes(task: TaskConfig, episodes: int, steps: int = 1, onehot: bool = F
     in_flight = ch.delay * env.n_agents * ch.bits * task.slots
     acting = acting_bytes(env.n_agents, ch.bits, task.slots) if onehot else 0
     return episodes * (steps * per_step + in_flight + acting)
-
-
-def acting_bytes(agents: int, bits: int, slots: int) -> int:
-    """The float32 tables of 2^K a one-hot policy holds per episode at an acting step: per agent its logits,
-    their softmax and cumulative sum, and one per slot it hears (`play_bytes`; `--env`'s `check_env`)."""
-    return agents * (1 << bits) * (3 + slots) * 4
 
 
 def onehot_bytes(cfg: TrainConfig) -> int:

@@ -19,7 +19,7 @@ from bitcomm.envs.subproc_vector import SubprocVecEnv
 from bitcomm.envs.vector import EnvLayout, VecEnv, VecStep, WrappedEnvMaker
 from bitcomm.errors import bad_value
 from bitcomm.learn.env_config import EnvTrainConfig
-from bitcomm.memory import BYTES_PER_GB, available_bytes
+from bitcomm.memory import BYTES_PER_GB, acting_bytes, available_bytes
 from bitcomm.policies.mlp import MlpPolicy
 
 HELD_COPIES = 3
@@ -70,14 +70,22 @@ def step_bytes(layout: EnvLayout) -> int:
     return layout.n * per_agent + 4 * layout.state_size + 6
 
 
-def too_long(layout: EnvLayout, episodes: int, steps: int, have: int, flag: str) -> Exception:
-    """The one line for `episodes` side by side whose buffers would outgrow `have` bytes at step `steps`."""
-    step = HELD_COPIES * episodes * step_bytes(layout) / BYTES_PER_GB
+def held_step_bytes(layout: EnvLayout, episodes: int) -> int:
+    """What one step of `episodes` side by side costs at the batch's peak (`HELD_COPIES` times its buffers): what
+    `play` refuses by, and what a command checks before it trains or evaluates."""
+    return HELD_COPIES * episodes * step_bytes(layout)
+
+
+def too_long(layout: EnvLayout, episodes: int, steps: int, have: int, flag: str, tables: int = 0) -> Exception:
+    """The one line for `episodes` side by side whose buffers would outgrow `have` bytes at step `steps`, besides
+    the `tables` a one-hot policy acts on at each step."""
+    step = held_step_bytes(layout, episodes) / BYTES_PER_GB
+    acting = f" besides {tables / BYTES_PER_GB:.2f} GB of one-hot tables it acts on" if tables else ""
     return bad_value(
         flag, episodes, f"{episodes} episodes side by side outgrow memory at step {steps:,} ({layout.n} agents "
         f"observing {layout.obs_dim:,} numbers, a state of {layout.state_size:,}: about {step:.2f} GB a step, kept "
-        f"to the episodes' end; {have / BYTES_PER_GB:.1f} GB available); give fewer --{flag}, or shorter episodes "
-        "(the env's own option in --env-kwargs, e.g. max_cycles)",
+        f"to the episodes' end{acting}; {have / BYTES_PER_GB:.1f} GB available); give fewer --{flag}, or shorter "
+        "episodes (the env's own option in --env-kwargs, e.g. max_cycles)",
     )  # fmt: skip
 
 
@@ -95,19 +103,22 @@ def play(
     message); actions and messages of absent agents are drawn but never sent. `on_step(step)` runs after each
     step of the copies (it may read `vec.envs`, e.g. to draw one: `bitcomm render`), and changes nothing.
 
-    An episode's length is not known before it ends: a step whose buffers (`HELD_COPIES` times) would outgrow the
-    memory available when the batch began is refused with one line naming `flag`, the option that set B."""
+    An episode's length is not known before it ends: a step whose buffers (`HELD_COPIES` times), with the tables a
+    one-hot policy acts on, would outgrow the memory available when the batch began is refused with one line naming
+    `flag`, the option that set B."""
     B = vec.num_envs
     have = available_bytes()
-    per_step = HELD_COPIES * B * step_bytes(vec.layout)
+    layout = vec.layout
+    tables = B * acting_bytes(layout.n, layout.bits, layout.slots) if policy.head.name == "onehot" else 0
+    per_step = held_step_bytes(layout, B)
     ob = vec.reset(batch_seeds(seed, B))
     dist = policy.actions
     steps: list[tuple[np.ndarray, ...]] = []
     valid_now = np.ones(B, bool)
     length, team_return = np.zeros(B, np.int64), np.zeros(B)
     while valid_now.any():
-        if (len(steps) + 1) * per_step > have:
-            raise too_long(vec.layout, B, len(steps) + 1, have, flag)
+        if (len(steps) + 1) * per_step + tables > have:
+            raise too_long(layout, B, len(steps) + 1, have, flag, tables)
         obs, received = torch.from_numpy(ob.obs), torch.from_numpy(ob.received)
         act_out, msg_logits = policy(obs, received)
         actions, bits = policy.draw(act_out, msg_logits, greedy, generator)
