@@ -791,6 +791,22 @@ def test_acting_reads_a_message_head_of_its_own_once_per_episode_as_each_step_wo
     assert torch.allclose(logp, ro.logp_message[it, ib], atol=1e-6)
 
 
+def test_the_divergence_and_the_logit_decay_share_one_pass_over_the_goal_cells(monkeypatch):
+    """Both terms read every goal cell's message logits: each minibatch step computes them once, not once per term
+    (`StepBatch.goal_message_logits`), and the update still moves the parameters."""
+    cfg = make_train_config("reinforced", TINY, num_envs=8, message_divergence=1.0, message_logit_decay=0.01)
+    learner = Learner(cfg)
+    assert {"message_divergence", "message_logit_decay"} <= {t.name for t in learner.terms}
+    ro = Collector(TINY, 8).collect(learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    net, calls = learner.policy, []
+    real = net.observed_message_logits
+    monkeypatch.setattr(net, "observed_message_logits", lambda planes: calls.append(len(planes)) or real(planes))
+    before = net.message_logits.weight.detach().clone()
+    learner.update(ro)
+    assert calls == [TINY.env.size**2] * (cfg.epochs * cfg.minibatches)
+    assert not torch.equal(before, net.message_logits.weight)
+
+
 def test_a_clip_wider_than_float32_clips_nothing() -> None:
     """`--clip 1e300 --epochs 2` (a huge clip: no clipping) was a RuntimeError: 1 + 1e300 is no float32 bound."""
     from bitcomm.learn.estimators import Advantages
@@ -819,13 +835,13 @@ def test_the_logit_decay_pulls_a_saturated_word_where_the_entropy_no_longer_does
     with torch.no_grad():  # every goal on one word, each bit saturated
         policy.message_logits.weight.zero_()
         policy.message_logits.bias.copy_(torch.tensor([30.0, -30.0, 30.0]))
-    batch = cast(StepBatch, SimpleNamespace(policy=policy, n=2, routes=SimpleNamespace(size=4)))  # what it reads
-    loss, figures = MessageLogitDecay(0.01)(batch)
     logits = policy.observed_message_logits(goal_planes(4))
+    batch = cast(StepBatch, SimpleNamespace(goal_message_logits=logits, n=2))  # what it reads
+    loss, figures = MessageLogitDecay(0.01)(batch)
     assert logits.abs().min().item() > 20
     assert loss.item() == pytest.approx(2 * 0.01 * logits.square().mean().item(), rel=1e-6)
     assert figures["charts/message_logit_abs"] == pytest.approx(logits.abs().mean().item(), rel=1e-6)
-    decay_grad = torch.autograd.grad(loss, policy.message_logits.bias)[0]
+    decay_grad = torch.autograd.grad(loss, policy.message_logits.bias, retain_graph=True)[0]
     entropy = 2 * 0.01 * policy.head.entropy(logits).mean()
     entropy_grad = torch.autograd.grad(entropy, policy.message_logits.bias)[0]
     assert entropy_grad.abs().max().item() < 1e-6 < 1e-3 < decay_grad.abs().max().item()
