@@ -423,6 +423,8 @@ BAD: dict[str, tuple[Callable[[], Any], str]] = {
     "rule not bool": (lambda: BitChannel(Toy(), topology=lambda s, r: 1), "must return a bool"),
     "fixed unknown": (lambda: BitChannel(Toy(), fixed_actions={"z": 0}), "fixed_actions='z'"),
     "fixed outside": (lambda: BitChannel(Toy(), fixed_actions={"a": 3}), "fixed_actions['a']=3"),
+    "reset seed -1": (lambda: BitChannel(Toy()).reset(seed=-1), "seed=-1"),  # was numpy's, naming no seed
+    "reset seed text": (lambda: BitChannel(Toy()).reset(seed="7"), "seed='7'"),  # type: ignore[arg-type]
 }
 
 

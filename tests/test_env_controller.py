@@ -154,6 +154,17 @@ def counted_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run
 
 
+def test_an_episode_count_or_seed_evaluation_cannot_play_is_one_line(counted_run: Path) -> None:
+    """0 episodes were an IndexError from an empty batch, a negative seed numpy's "expected non-negative integer"
+    (the grid's `evaluate` and `bitcomm eval` named both already)."""
+    typed = f"{MODULE}:CountedEnv"
+    for episodes, seed, line in ((0, 0, "invalid episodes=0: must be an integer >= 1"), (2, -1, "invalid seed=-1")):
+        with pytest.raises(ConfigError, match=line):
+            evaluate_env(counted_run, episodes, seed=seed, typed_env=typed)
+    with pytest.raises(ConfigError, match="invalid seed=-1"):
+        EnvController.load(counted_run, typed_env=typed, seed=-1)
+
+
 def test_loading_builds_one_env_copy_and_closes_it(counted_run: Path) -> None:
     CountedEnv.made.clear()
     EnvController.load(counted_run, typed_env=f"{MODULE}:CountedEnv")

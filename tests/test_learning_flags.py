@@ -70,6 +70,28 @@ def test_a_config_built_in_python_names_a_wrongly_typed_or_out_of_range_value() 
     assert make_train_config("reinforced", epochs=2, lr=1, gamma=1).lr == 1  # an int is a number
 
 
+@pytest.mark.parametrize("seed", [-1, 2**32, 2**70, 2.0, "7"])
+def test_a_seed_no_stream_takes_is_one_line_wherever_python_gives_one(seed: object) -> None:
+    """`bitcomm train --seed` stops these; from Python they reached numpy's "expected non-negative integer" or
+    torch's "Overflow when unpacking long long", naming no seed, once training, evaluation or sampling began."""
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.policies.controller import Controller
+    from bitcomm.policies.evaluation import evaluate
+    from bitcomm.policies.networks import PolicyNet
+    from bitcomm.policies.reference import OraclePolicy
+
+    task = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
+    for make in (
+        lambda: make_train_config("reinforced", task=task, seed=seed),
+        lambda: EnvTrainConfig(env="mpe2.simple_v3:parallel_env", seed=seed),  # type: ignore[arg-type]
+        lambda: evaluate(OraclePolicy(task), task, 2, seed=seed),  # type: ignore[arg-type]
+        lambda: Controller(PolicyNet(task, ModelConfig()), {}, seed=seed),  # type: ignore[arg-type]
+    ):
+        with pytest.raises(ConfigError, match=f"invalid seed={seed!r}: must be an integer in"):
+            make()
+    assert make_train_config("reinforced", task=task, seed=2**32 - 1).seed == 2**32 - 1
+
+
 def test_a_task_or_config_of_the_wrong_kind_is_named_not_an_attribute_error() -> None:
     """A notebook's likely slip, the grid's EnvConfig where a TaskConfig goes, or a dict for the config."""
     from bitcomm.config import EnvConfig

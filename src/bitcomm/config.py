@@ -28,6 +28,21 @@ MAX_STEPS = 100_000
 """Episode length cap (`max_steps`): beyond it a random policy's evaluation would run for days."""
 
 
+def check_seed(value: object) -> None:
+    """One error line unless `value` is a seed every stream takes (an integer in [0, MAX_SEED]): numpy's
+    SeedSequence refuses a negative one and torch's manual_seed one past 64 bits, each in words naming neither."""
+    if not is_integer(value) or not 0 <= value <= MAX_SEED:  # type: ignore[operator]
+        raise bad_value("seed", value, f"must be an integer in [0, {MAX_SEED}]")
+
+
+def check_evaluation(episodes: object, seed: object) -> None:
+    """One error line unless an evaluation can play `episodes` (an integer >= 1; 0 was an IndexError from an empty
+    batch) seeded by `seed` (`check_seed`)."""
+    if not is_integer(episodes) or episodes < 1:  # type: ignore[operator]
+        raise bad_value("episodes", episodes, "must be an integer >= 1")
+    check_seed(seed)
+
+
 def _probability(config: object, field: str, name: str) -> None:
     """One error line unless `config.field` is a number in [0, 1] (a numpy one is taken; a bool is not); stored
     as a Python float, so a config stays JSON."""

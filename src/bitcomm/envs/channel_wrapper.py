@@ -47,6 +47,12 @@ def channel_seed(seed: int) -> np.random.SeedSequence:
     return np.random.SeedSequence([seed, SEED_SALT])
 
 
+def _check_seed(seed: object) -> None:
+    """One error line unless `seed` is None or an integer >= 0 (the constructor's and `reset`'s)."""
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+        raise bad_value("seed", seed, "must be None or an integer >= 0")
+
+
 class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
     """A PettingZoo `ParallelEnv` whose agents also talk through a K-bit noisy, delayed channel.
 
@@ -90,8 +96,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
                 type(env).__name__,
                 "must be a PettingZoo ParallelEnv (pettingzoo.utils.aec_to_parallel converts an AEC env)",
             )
-        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
-            raise bad_value("seed", seed, "must be None or an integer >= 0")
+        _check_seed(seed)
         self.inner = env
         self.possible_agents: list[AgentID] = list(env.possible_agents)
         if not self.possible_agents or len(set(self.possible_agents)) != len(self.possible_agents):
@@ -148,6 +153,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         """Reset the inner env and empty the channel. `seed` seeds both (the channel from
         `SeedSequence([seed, 0xB17])`); without one, the first reset uses the constructor's `seed` and
         later ones continue the streams."""
+        _check_seed(seed)  # else numpy's "expected non-negative integer", naming no seed
         seed = self._first_seed if seed is None else seed
         self._first_seed = None
         if seed is not None:

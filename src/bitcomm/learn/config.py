@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig
+from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig, check_seed
 from bitcomm.errors import ConfigError, bad_value, check_instance, check_int, check_number, check_rate, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
@@ -257,6 +257,7 @@ class TrainConfig:
             raise bad_value("mode", self.mode, "on --backend ray leave it at sync (--staleness picks sync or async)")
         if self.recipe not in RECIPES:
             raise bad_value("recipe", self.recipe, f"choose one of {', '.join(RECIPES)}")
+        check_seed(self.seed)
         check_int("train_max_steps", self.train_max_steps, 0)  # 0: the task's max_steps
         check_int("staleness", self.staleness, 0)
         check_int("anneal_episodes", self.anneal_episodes, 0)

@@ -12,6 +12,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from bitcomm.config import check_seed
 from bitcomm.envs.subproc_vector import check_workers
 from bitcomm.errors import bad_value, check_int, check_number, check_rate, is_number
 from bitcomm.learn.estimators import ESTIMATORS
@@ -92,7 +93,7 @@ class EnvTrainConfig:
             raise bad_value("env-kwargs", self.env_kwargs, "must be a JSON object")
         for name in ("episodes", "num_envs", "epochs", "minibatches", "keep_checkpoints"):
             check_int(name, getattr(self, name), 1)
-        check_int("seed", self.seed, 0)
+        check_seed(self.seed)
         check_workers(self.env_workers, self.num_envs, 0)
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")

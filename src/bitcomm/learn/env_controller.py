@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from pettingzoo import ParallelEnv
 
+from bitcomm.config import check_seed
 from bitcomm.envs.vector import EnvLayout, agent_rows, check_finite, joint_action
 from bitcomm.errors import bad_value
 from bitcomm.learn.env_config import EnvTrainConfig
@@ -43,6 +44,7 @@ class EnvController:
         self.policy = policy.eval()
         self.config = config
         """The run's `EnvTrainConfig`: its env, env kwargs and channel (what `make_env` builds)."""
+        check_seed(seed)  # as `Controller`: torch's own refusals name no seed
         self.generator = torch.Generator().manual_seed(seed)
 
     @property

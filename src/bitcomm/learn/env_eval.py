@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import load_env_weights
+from bitcomm.config import check_evaluation
 from bitcomm.envs.factory import check_recorded_env
 from bitcomm.errors import ConfigError, one_line
 from bitcomm.learn.env_config import EnvTrainConfig
@@ -81,6 +82,7 @@ def evaluate_env(
 ) -> EnvEvalResult:
     """Play `episodes` seeded episodes with the policy of `path` on its env (channel drops changed by `drop_prob`;
     `typed_env` as in `load_env_policy`)."""
+    check_evaluation(episodes, seed)  # before the env is built
     cfg, policy = load_env_policy(path, typed_env)
     return evaluate_env_policy(cfg, policy, episodes, seed, drop_prob, greedy)
 
@@ -95,6 +97,7 @@ def evaluate_env_policy(
 ) -> EnvEvalResult:
     """`evaluate_env` for a policy `load_env_policy` read (so `bitcomm eval` can check, from its layout, that
     `min(episodes, EVAL_CHUNK)` episodes side by side fit before they play)."""
+    check_evaluation(episodes, seed)
     generator = torch.Generator().manual_seed(seed)
     returns: list[np.ndarray] = []
     lengths: list[np.ndarray] = []

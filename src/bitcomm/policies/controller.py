@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import load_grid_weights
-from bitcomm.config import TaskConfig
+from bitcomm.config import TaskConfig, check_seed
 from bitcomm.errors import ConfigError, one_line
 from bitcomm.policies.agent import act
 from bitcomm.policies.agent_policies import agent_batch
@@ -43,6 +43,7 @@ class Controller:
         """The training config as saved with the checkpoint (`TrainConfig.to_dict()`)."""
         self.info = info or {}
         """Checkpoint facts: path, episodes and batches trained."""
+        check_seed(seed)  # torch takes -1 and refuses 2**64 or a string in words naming neither
         self.generator = torch.Generator().manual_seed(seed)
 
     @property

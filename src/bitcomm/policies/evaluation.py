@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from bitcomm.config import TaskConfig
+from bitcomm.config import TaskConfig, check_evaluation
 from bitcomm.envs.core import StepResult
 from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.errors import bad_value
@@ -108,8 +108,7 @@ def evaluate(
     `policy` is a batched `Policy` (an `Observation` in, `(B, n)` moves and `(B, n, K)` bits out) or a trained
     `bitcomm.Controller`, which samples from its own generator (`evaluate_controller` plays it greedily) and
     brings its task: `evaluate(Controller.load("runs/demo"))`. Any other policy needs `task`."""
-    if not isinstance(episodes, int) or episodes < 1:
-        raise bad_value("episodes", episodes, "must be an integer >= 1")
+    check_evaluation(episodes, seed)
     if not callable(policy):
         from bitcomm.policies.controller import Controller
 
