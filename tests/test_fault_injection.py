@@ -242,6 +242,18 @@ def test_a_tampered_run_is_not_resumed(case: str, run: Path, capsys) -> None:
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == before  # nothing written
 
 
+@pytest.mark.parametrize("case", [c for c in RESUME_CASES if c.startswith("config.json")])
+def test_a_damaged_config_json_stops_a_resume_before_it_prints_a_line(case: str, run: Path, capsys) -> None:
+    """It was read only once training began, after "run folder: ... (resumed)": two lines for one mistake."""
+    RESUME_CASES[case](run)
+    try:
+        main(["train", "--out", str(run), "--resume", "--episodes", "48", *QUICK])
+    except SystemExit:
+        pass
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.strip().splitlines()) == 1, (out, err)
+
+
 def test_a_wrapped_env_checkpoint_whose_config_does_not_fit_is_one_line(tmp_path: Path, capsys) -> None:
     """eval and render read a wrapped env's config from the checkpoint: a channel field this bitcomm does not
     know is one line naming the file, as on --resume."""

@@ -195,6 +195,11 @@ def read_config_json(out: Path) -> dict[str, Any]:
     return read_json_object(out / "config.json", "config")
 
 
+def check_config_json(out: Path) -> None:
+    """One line unless the run's config.json can take this start's record (a resume appends to its `starts`)."""
+    recorded_starts(read_config_json(out), out)
+
+
 def read_metrics(path: Path, upto_batch: int) -> list[dict[str, str]]:
     """The rows of metrics.csv up to a batch (a torn last row, from a kill, is dropped); one line if corrupt."""
     try:
@@ -502,6 +507,7 @@ def resume_config(out: Path, from_dict: Callable[[dict[str, Any]], ConfigT], epi
     `EnvTrainConfig.from_dict`), with a new budget if one is given. It reads the checkpoint's metadata alone:
     `prepare` reads and checks the tensors when the run resumes."""
     check_start(out, resume=True)
+    check_config_json(out)  # which `prepare` reads again: a damaged one stops the run before a line is printed
     d = read_config(out)
     if episodes is not None:
         d["episodes"] = episodes
@@ -588,7 +594,7 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
         if key not in state:
             raise ConfigError(f"invalid checkpoint={info['path']!r}: its resume state lacks {key!r}")
     # refuse a damaged config.json or metrics.csv before anything is written
-    recorded_starts(read_config_json(out), out)
+    check_config_json(out)
     if (out / "metrics.csv").exists():  # a folder of that name too, before the log would fail on it
         read_metrics(out / "metrics.csv", int(state["batches"]))
     played = int(state["episodes"])
