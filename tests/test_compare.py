@@ -37,6 +37,7 @@ from bitcomm.studies.compare import (
     recorded_config,
     rolling_at_episodes,
     run_status,
+    seconds_phrase,
 )
 
 TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
@@ -454,3 +455,11 @@ def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
         raise AssertionError("not reached: the handler raises as the signal arrives")
     assert stopped.value.exit_code == 143
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+def test_a_quick_studys_equal_wall_clock_is_not_read_as_0_seconds() -> None:
+    """The table's last column is each run's rolling length at the quickest run's training time; a study of seconds
+    (a smoke test, a tiny grid) headed it "after 0 s"."""
+    assert [seconds_phrase(s) for s in (0.3, 0.04, 9.5, 110.4, 1234.4)] == [
+        "0.3 s", "0.04 s", "9.5 s", "110 s", "1,234 s"
+    ]  # fmt: skip

@@ -684,6 +684,11 @@ def recipe_phrase(recipe: str, learning: dict[str, Any]) -> str:
     return f"{recipe} recipe" + (f" ({', '.join(f'{k}={_format(v)}' for k, v in changed)})" if changed else "")
 
 
+def seconds_phrase(seconds: float) -> str:
+    """A table header's training time: whole seconds, or two figures below 10 s (a quick study's 0.3 s read "0 s")."""
+    return f"{seconds:,.0f} s" if seconds >= 10 else f"{seconds:.2g} s"
+
+
 def runs_phrase(study: dict[str, Any], configurations: list[dict[str, Any]]) -> str:
     """A table title's count of runs: '5 seeds x 60,000 episodes', or for a report whose configurations have
     finished fewer or different numbers of seeds, '2-5 of 5 seeds x 60,000 episodes (finished runs)'."""
@@ -983,7 +988,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
     header = ["configuration", "seeds", "length (sampled)", "return (sampled)", "length (greedy)", "return (greedy)",
               "length, channel cut at evaluation", *(f"episodes to {k} oracle" for k in keys),
               *(f"seconds to {k} oracle" for k in keys), "seconds per run",
-              f"rolling length after {study['equal_wall_s']:,.0f} s"]  # fmt: skip
+              f"rolling length after {seconds_phrase(study['equal_wall_s'])}"]  # fmt: skip
     lines = [
         f"# bitcomm compare: {recipe_phrase(study['recipe'], study['learning'])}, "
         f"{runs_phrase(study, summary['configurations'])}",

@@ -55,6 +55,7 @@ from bitcomm.studies.compare import (
     read_evaluation,
     run_record,
     runs_phrase,
+    seconds_phrase,
     study_runs,
     study_seeds,
     technique_entry,
@@ -188,7 +189,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
     study, ch = summary["study"], summary["study"]["channel"]
     header = ["configuration", "seeds", "return (sampled)", "return (greedy)", "return, channel cut at evaluation",
               "episode length (sampled)", "rolling return at the end",
-              f"rolling return after {study['equal_wall_s']:,.0f} s", "seconds per run"]  # fmt: skip
+              f"rolling return after {seconds_phrase(study['equal_wall_s'])}", "seconds per run"]  # fmt: skip
     lines = [
         f"# bitcomm compare: {study['env']}, {runs_phrase(study, summary['configurations'])}",
         "",
