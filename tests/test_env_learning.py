@@ -676,6 +676,7 @@ def test_evaluating_a_run_closes_the_envs_it_made(tmp_path: Path) -> None:
         (["--env", SPEC, "--agents", "3"], "a grid option, not used with --env"),
         (["--env", SPEC, "--recipe", "supervised"], "not used with --env"),
         (["--env", SPEC, "--lr", "1e300"], "the largest float32"),  # was a traceback from inside Adam
+        (["--env", SPEC, "--hidden", "0"], "invalid hidden=0: must be an integer >= 1"),  # was named as (0, 0)
     ],
 )
 def test_cli_errors_are_one_line(

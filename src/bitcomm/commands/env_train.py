@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 from bitcomm.commands.backend_flags import SAVING, check_resume_flags
 from bitcomm.commands.env_flags import ENV_ONLY
 from bitcomm.commands.learning_flags import learning_overrides
-from bitcomm.errors import bad_value, plural
+from bitcomm.errors import bad_value, check_int, plural
 
 if TYPE_CHECKING:
     from bitcomm.envs.vector import EnvLayout
@@ -48,7 +48,10 @@ def env_overrides(args: argparse.Namespace) -> dict[str, Any]:
             raise bad_value(
                 name.replace("_", "-"), value, f"not used with --env (those are: {', '.join(sorted(SUPPORTED))})"
             )
-        out[RENAMED.get(name, name)] = (value, value) if name == "hidden" else value
+        if name == "hidden":  # one width for both layers; named as typed, not as the pair it becomes
+            check_int("hidden", value, 1)
+            value = (value, value)
+        out[RENAMED.get(name, name)] = value
     return out
 
 
