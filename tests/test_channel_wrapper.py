@@ -233,6 +233,15 @@ def test_topology_matrices() -> None:
     assert recipients_of(agents, "ring").tolist() == [[0, 1, 0], [0, 0, 1], [1, 0, 0]]  # i tells i + 1
     assert recipients_of(agents, [("c", "a"), ("b", "a")]).tolist() == [[0, 0, 0], [1, 0, 0], [1, 0, 0]]
     assert recipients_of(agents, lambda s, r: s < r).tolist() == [[0, 1, 1], [0, 0, 1], [0, 0, 0]]
+    matrix = np.array([[0, 1, 0], [0, 0, 0], [1, 1, 0]], dtype=bool)  # the matrix itself, as numpy builds it
+    assert recipients_of(agents, matrix).tolist() == matrix.tolist()
+
+
+def test_a_wrappers_recipients_given_back_as_its_topology_build_the_same_channel() -> None:
+    ring = BitChannel(Toy(), topology="ring")
+    again = BitChannel(Toy(), topology=ring.recipients)
+    assert np.array_equal(again.recipients, ring.recipients)
+    assert again.recipients is not ring.recipients  # a copy: editing one channel's matrix leaves the other's
 
 
 @pytest.mark.parametrize(
@@ -242,6 +251,7 @@ def test_topology_matrices() -> None:
         ("ring", {"a": "c", "b": "a", "c": "b"}),
         ([("c", "a"), ("b", "a")], {"a": "bc", "b": "", "c": ""}),
         (lambda s, r: s < r, {"a": "", "b": "a", "c": "ab"}),
+        (np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0]], dtype=bool), {"a": "bc", "b": "", "c": ""}),
     ],
 )
 def test_topology_routes_each_sender_to_its_slot(topology: Any, heard: dict[str, str]) -> None:
@@ -421,6 +431,10 @@ BAD: dict[str, tuple[Callable[[], Any], str]] = {
     "duplicate edge": (lambda: BitChannel(Toy(), topology=[("a", "b"), ("a", "b")]), "twice"),
     "rule raises": (lambda: BitChannel(Toy(), topology=lambda s, r: 1 / 0), "ZeroDivisionError"),
     "rule not bool": (lambda: BitChannel(Toy(), topology=lambda s, r: 1), "must return a bool"),
+    # a matrix was refused row by row as an edge list ("each edge must be a (sender, receiver) pair")
+    "matrix shape": (lambda: BitChannel(Toy(), topology=np.zeros((2, 2), bool)), "must be (3, 3)"),
+    "matrix dtype": (lambda: BitChannel(Toy(), topology=np.zeros((3, 3))), "dtype float64"),
+    "matrix self": (lambda: BitChannel(Toy(), topology=np.eye(3, dtype=bool)), "[0, 0] True"),
     "fixed unknown": (lambda: BitChannel(Toy(), fixed_actions={"z": 0}), "fixed_actions='z'"),
     "fixed outside": (lambda: BitChannel(Toy(), fixed_actions={"a": 3}), "fixed_actions['a']=3"),
     "reset seed -1": (lambda: BitChannel(Toy()).reset(seed=-1), "seed=-1"),  # was numpy's, naming no seed

@@ -1,5 +1,5 @@
-"""Who hears whom among named agents (SPEC section 8): a topology given as a word, a list of edges or
-a rule becomes the `(n, n)` recipient matrix that `bitcomm.config.slot_table` and `Channel` read.
+"""Who hears whom among named agents (SPEC section 8): a topology given as a word, a list of edges, a rule
+or the matrix itself becomes the `(n, n)` recipient matrix that `bitcomm.config.slot_table` and `Channel` read.
 
 Kept apart from any environment so that a wrapper, a learner or a test can build the same matrix.
 """
@@ -13,10 +13,14 @@ import numpy as np
 
 from bitcomm.errors import bad_value
 
-Topology: TypeAlias = str | Iterable[tuple[str, str]] | Callable[[str, str], bool]
-"""`"all"`, `"ring"`, `(sender, receiver)` name pairs, or a rule `(sender, receiver) -> bool`."""
+Topology: TypeAlias = str | Iterable[tuple[str, str]] | Callable[[str, str], bool] | np.ndarray
+"""`"all"`, `"ring"`, `(sender, receiver)` name pairs, a rule `(sender, receiver) -> bool`, or an `(n, n)` bool
+recipient matrix."""
 
-ALLOWED = "must be 'all', 'ring', (sender, receiver) name pairs, or a callable (sender, receiver) -> bool"
+ALLOWED = (
+    "must be 'all', 'ring', (sender, receiver) name pairs, a callable (sender, receiver) -> bool, "
+    "or an (n, n) bool recipient matrix"
+)
 
 
 def recipients_of(agents: Sequence[str], topology: Topology) -> np.ndarray:
@@ -27,6 +31,8 @@ def recipients_of(agents: Sequence[str], topology: Topology) -> np.ndarray:
       and tells it).
     - pairs `(sender, receiver)`: exactly those edges; names must be agents, no self edge, no duplicate.
     - a callable `rule(sender, receiver) -> bool`, asked once for each ordered pair of distinct agents.
+    - an `(n, n)` bool numpy array: the matrix itself, in the order of `agents` (a wrapper's `recipients`, or one a
+      graph library made), with a False diagonal.
     """
     names = list(agents)
     n = len(names)
@@ -41,6 +47,8 @@ def recipients_of(agents: Sequence[str], topology: Topology) -> np.ndarray:
             mat[np.arange(n), (np.arange(n) + 1) % n] = True
             return mat
         raise bad_value("topology", topology, ALLOWED)
+    if isinstance(topology, np.ndarray):
+        return _checked_matrix(topology, n)
     if callable(topology):
         for s in names:
             for r in names:
@@ -62,6 +70,18 @@ def recipients_of(agents: Sequence[str], topology: Topology) -> np.ndarray:
             raise bad_value("topology", edge, "this edge is listed twice")
         mat[index[s], index[r]] = True
     return mat
+
+
+def _checked_matrix(matrix: np.ndarray, n: int) -> np.ndarray:
+    """A copy of a recipient matrix given as an array, or one error line naming what is wrong with it."""
+    if matrix.shape != (n, n):
+        raise bad_value("topology", f"array of shape {matrix.shape}", f"a recipient matrix must be ({n}, {n}) here")
+    if matrix.dtype != np.bool_:
+        raise bad_value("topology", f"array of dtype {matrix.dtype}", "a recipient matrix must be of dtype bool")
+    if matrix.diagonal().any():
+        who = int(np.flatnonzero(matrix.diagonal())[0])
+        raise bad_value("topology", f"array with [{who}, {who}] True", "an agent cannot send to itself")
+    return matrix.copy()
 
 
 def _ask(rule: Callable[[str, str], bool], sender: str, receiver: str) -> bool:

@@ -28,8 +28,8 @@ class EnvChannelConfig:
     flip_prob: float = 0.0
     drop_prob: float = 0.0
     topology: str | list[list[str]] = "all"
-    """`all`, `ring`, or a list of `[sender, receiver]` agent-name pairs (a callable is not JSON: pass one to
-    `BitChannel` directly)."""
+    """`all`, `ring`, or a list of `[sender, receiver]` agent-name pairs (a callable or a matrix is not JSON: pass
+    one to `BitChannel` directly)."""
     fixed_actions: dict[str, Any] | None = None
     """Agents whose inner action the wrapper fixes (e.g. `{"speaker_0": 0}` silences MPE2's native speaker)."""
 
