@@ -113,3 +113,15 @@ def test_cli_writes_heatmaps_summary_and_json(tmp_path: Path, capsys: pytest.Cap
     assert set(RECORDED) <= set(record)
     summary = (out / "summary.md").read_text()
     assert "# Protocol analysis" in summary and "bits.png" in summary and summary.count("\n| ") >= 4 + 5
+
+
+def test_deliveries_of_one_episode_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """One random episode side by side with no other outlasts 100 deliveries: the decoder's fit half was empty, an
+    argmax of an empty sequence (a traceback); the line says what to give more of."""
+    argv = ["analyze", "--policy", "random", "--samples", "100", "--envs", "1", "--out", str(tmp_path / "an")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "bitcomm analyze: error: invalid deliveries=100: all from one episode; the lookup decoder is fitted on half "
+        "the episodes and scored on the others, so it needs deliveries from 2 or more (give more --samples or --envs)"
+    ], err

@@ -229,6 +229,16 @@ def test_deploy_runs_the_exported_policy(exported: tuple[Path, Path]) -> None:
     assert result["network"]["missing"] == 0 and result["network"]["sent"] > 0
 
 
+@pytest.mark.parametrize("seed", [-1, 1.5, "abc", True, 2**64])
+def test_a_bad_seed_is_one_line_as_the_controllers(exported: tuple[Path, Path], seed: object) -> None:
+    """numpy's ValueError or TypeError (-1, 1.5, "abc"), or a seed taken (True, 2**64), where `Controller` says
+    what a seed is."""
+    run, out = exported
+    for load in (lambda: Controller.load(run, seed=seed), lambda: OnnxController.load(out, seed=seed)):  # type: ignore[arg-type]
+        with pytest.raises(ConfigError, match=r"^invalid seed=.*: must be an integer in \[0, 4294967295\]$"):
+            load()
+
+
 def _bad_onnx(tmp_path: Path) -> Path:
     bad = tmp_path / "not.onnx"
     bad.write_bytes(b"not an onnx model")

@@ -155,6 +155,27 @@ def test_a_resume_of_a_run_still_before_its_first_checkpoint_names_its_writer(ru
         holder.wait()
 
 
+def test_a_fresh_start_on_a_run_still_being_written_is_one_line_naming_its_writer(run: Path, capsys) -> None:
+    """The second `bitcomm train` on an --out being trained printed `run folder: ...` on stdout before the lock's
+    line (before its first checkpoint), or said "use --resume" (after it): one line naming the pid, nothing else."""
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(run)], stdout=subprocess.PIPE, text=True, env=ENV)
+    line = (
+        f"bitcomm train: error: invalid out={str(run)!r}: another process (pid {holder.pid}) is writing this run "
+        "folder; let it end or use another --out"
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        for before_first_checkpoint in (False, True):
+            if before_first_checkpoint:
+                shutil.rmtree(run / "checkpoints")
+            rc = main(["train", *QUICK, "--out", str(run), "--episodes", "64"])
+            out, err = capsys.readouterr()
+            assert rc == 2 and out == "" and err.strip().splitlines() == [line], (out, err)
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+
+
 @pytest.mark.parametrize(
     "changed",
     [

@@ -190,3 +190,26 @@ def test_cli_defaults_are_the_config_defaults() -> None:
     from bitcomm.commands.variance import variance_config
 
     assert variance_config(build_parser().parse_args(["variance", "RUN"])) == VarianceConfig()
+
+
+def test_a_checkpoint_named_twice_or_of_another_task_is_one_line(
+    run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """A run given twice (or with one of its files) was measured twice, its rows printed twice; runs of different
+    tasks were measured and titled, plotted and recorded in provenance.json as the last one's task."""
+    other = tmp_path / "other"
+    train(make_train_config("reinforced", TaskConfig(EnvConfig(size=4, max_steps=20), ChannelConfig(bits=2)),
+                            num_envs=16, episodes=16, checkpoint_seconds=0), other, progress=False)  # fmt: skip
+    latest = str(select_stages(run_dir, "latest")[0])
+    quick = ["--stages", "latest", "--batches", "2", "--num-envs", "8", "--fit-batches", "1", "--out", str(tmp_path)]
+    assert main(["variance", str(run_dir), latest, *quick]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"bitcomm variance: error: invalid RUN_OR_CHECKPOINT={latest!r}: {latest} is measured already; give each once"
+    ]
+    assert main(["variance", str(run_dir), str(other), *quick]) == 2
+    mine = select_stages(other, "latest")[0]
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"bitcomm variance: error: invalid RUN_OR_CHECKPOINT='{mine}': its task (4x4 grid, K = 2, delay 1) is not "
+        f"{latest}'s (3x3 grid, K = 2, delay 1); one table measures one task: run bitcomm variance once per task"
+    ]
+    assert not (tmp_path / "variance.csv").exists()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -21,9 +22,10 @@ from bitcomm.commands.flags import (
     out_dir,
     use_threads,
 )
-from bitcomm.errors import plural
+from bitcomm.errors import bad_value, plural
 
 if TYPE_CHECKING:
+    from bitcomm.config import TaskConfig
     from bitcomm.studies.variance import VarianceConfig
 
 
@@ -95,6 +97,36 @@ def variance_config(args: argparse.Namespace) -> VarianceConfig:
     )
 
 
+def check_once(files: list[Path]) -> None:
+    """One line for a checkpoint named twice (a run given twice, or a run folder and one of its files): it was
+    measured twice and its rows printed twice, as a repeated --stages count would be."""
+    seen: dict[str, Path] = {}
+    for file in files:
+        key = os.path.realpath(file)
+        if key in seen:
+            raise bad_value("RUN_OR_CHECKPOINT", str(file), f"{seen[key]} is measured already; give each once")
+        seen[key] = file
+
+
+def check_one_task(files: list[Path], tasks: list[TaskConfig]) -> None:
+    """One line for checkpoints of different tasks: the title, the plot and provenance.json name one task, which
+    was the last one's (a 4x4 run's rows were titled 5x5)."""
+    for file, task in zip(files, tasks, strict=True):
+        if task != tasks[0]:
+            theirs, first = task_title(task), task_title(tasks[0])
+            what = f"its task ({theirs}) is not" if theirs != first else f"its task ({theirs}) differs from"
+            raise bad_value(
+                "RUN_OR_CHECKPOINT",
+                str(file),
+                f"{what} {files[0]}'s ({first}); one table measures one task: run bitcomm variance once per task",
+            )
+
+
+def task_title(task: TaskConfig) -> str:
+    """What the title and a refusal name a task by (its shape and delay, as `--delay` changes it)."""
+    return f"{task.env.size}x{task.env.size} grid, K = {task.channel.bits}, delay {task.channel.delay}"
+
+
 def run(args: argparse.Namespace) -> int:
     from bitcomm.policies.source import resolve_task
     from bitcomm.studies.variance import (
@@ -116,11 +148,16 @@ def run(args: argparse.Namespace) -> int:
             kept = plural(len(picked), "checkpoint", "checkpoints")
             print(f"{path}: spread:{stages} measures the {kept} it keeps", file=sys.stderr)
         files += picked
+    check_once(files)
+    loaded = [load_stage(f) for f in files]  # each read once: its task checked here, its policy measured below
+    tasks = [
+        resolve_task(args, s.config.task, label=f"checkpoint {str(f)!r}", strict=True)
+        for f, s in zip(files, loaded, strict=True)
+    ]
+    check_one_task(files, tasks)
     use_threads(args)
     rows, task = [], None
-    for file in files:
-        stage = load_stage(file)
-        task = resolve_task(args, stage.config.task, label=f"checkpoint {str(file)!r}", strict=True)
+    for file, stage, task in zip(files, loaded, tasks, strict=True):
         check_play(task, "num-envs", vcfg.num_envs, vcfg.num_envs, task.env.max_steps)
         stage_rows = measure_stage(stage.on_task(task), vcfg)
         rows += stage_rows
@@ -128,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
             message = next(r for r in stage_rows if r.part == "message")
             print(f"{file}: message variance ratio improved/standard {message.ratio:.3f}", file=sys.stderr)
     assert task is not None
-    title = f"{task.env.size}x{task.env.size} grid, K = {task.channel.bits}, delay {task.channel.delay}"
+    title = task_title(task)
     out = Path(args.out)
     csv_path = write_csv(rows, out / "variance.csv")
     md_path = out / "variance.md"

@@ -550,11 +550,11 @@ def check_start(out: Path, resume: bool) -> None:
     """One line, before anything is written, for a start `out` cannot take: a resume without a checkpoint, a
     fresh run where a run is, or a fresh run that would overwrite files of `RUN_FILES` that are not a run's. A run
     stopped before its first checkpoint is started again from scratch."""
+    if is_run_folder(out):  # a run being written: the line naming its pid, before `run folder:` is printed
+        with run_lock(out):
+            pass
     if resume:
         if not has_checkpoint(out):
-            if is_run_folder(out):
-                with run_lock(out):  # a run still playing toward its first checkpoint: the line naming its pid
-                    pass
             kept = complete(out / CHECKPOINTS) if (out / CHECKPOINTS).is_dir() else []
             if kept:  # latest.json lost (deleted, not synced): a fresh start would remove these, never advise it
                 episodes, last = kept[-1]

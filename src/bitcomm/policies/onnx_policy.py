@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from bitcomm.channel.core import index_to_bits
-from bitcomm.config import TaskConfig
+from bitcomm.config import TaskConfig, check_seed
 from bitcomm.envs.core import N_MOVES
 from bitcomm.errors import ConfigError
 from bitcomm.policies.agent_policies import agent_batch
@@ -115,6 +115,8 @@ class OnnxController:
         """The policy card written by `bitcomm export` (also in the `.json` sidecar)."""
         self.task: TaskConfig = TaskConfig.from_dict(metadata["task"])
         self.messages: str = metadata["messages"]
+        if seed is not None and not isinstance(seed, np.random.SeedSequence):
+            check_seed(seed)  # as Controller's: numpy refuses -1 or 1.5 in words naming neither, and takes True
         self.rng = np.random.default_rng(seed)
 
     @classmethod

@@ -34,6 +34,7 @@ import numpy as np
 from bitcomm.channel.core import bits_to_index
 from bitcomm.config import TaskConfig
 from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.errors import bad_value
 from bitcomm.policies.agent_policies import AgentPolicy, BatchedPolicy
 
 
@@ -129,6 +130,18 @@ def split_by_episode(episodes: np.ndarray, seed: int) -> tuple[np.ndarray, np.nd
     return np.flatnonzero(~held_out[group]), np.flatnonzero(held_out[group])
 
 
+def check_split(fit: np.ndarray, test: np.ndarray, deliveries: int) -> None:
+    """One line unless both halves hold deliveries: those of one episode (one slow episode side by side with no
+    other, `--envs 1`) left nothing to fit the decoder on, an argmax of an empty sequence."""
+    if fit.size == 0 or test.size == 0:
+        raise bad_value(
+            "deliveries",
+            deliveries,
+            "all from one episode; the lookup decoder is fitted on half the episodes and scored on the others, so "
+            "it needs deliveries from 2 or more (give more --samples or --envs)",
+        )
+
+
 def decode(table: dict[int, int], default: int, patterns: np.ndarray) -> np.ndarray:
     return np.fromiter((table.get(int(p), default) for p in patterns), dtype=np.int64, count=len(patterns))
 
@@ -184,6 +197,7 @@ def analyze_samples(samples: MessageSamples, task: TaskConfig, policy: str = "",
     D = len(dgoal)
     episodes = samples.delivered_episode if samples.delivered_episode is not None else np.arange(D)
     fit, test = split_by_episode(episodes, seed)
+    check_split(fit, test, D)
     table, default = fit_lookup_decoder(received[fit], dgoal[fit])
     decoded = decode(table, default, received[test])
     n_goals, n_patterns = np.unique(dgoal).size, np.unique(received).size
