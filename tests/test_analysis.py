@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bitcomm.cli import main
+from bitcomm.cli import build_parser, main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.policies.agent_policies import OracleAgent, RandomAgent
 from bitcomm.provenance import RECORDED
@@ -91,6 +92,19 @@ def test_collected_deliveries_carry_their_episode() -> None:
     assert samples.delivered_episode is not None and len(samples.delivered_episode) == len(samples.delivered_goal)
     for key in np.unique(samples.delivered_episode)[:50]:  # one goal per episode and sender
         assert np.unique(samples.delivered_goal[samples.delivered_episode == key]).size <= task.env.n_agents
+
+
+def test_samples_are_deliveries_sent_in_time_to_arrive_not_a_minimum_gathered() -> None:
+    """`--samples 100` at delay 50 on a 2x2 grid gathered 14 deliveries where the help said "deliveries to collect"
+    and the docstring "until at least `samples`": most episodes end before their messages arrive."""
+    task = TaskConfig(EnvConfig(size=2), ChannelConfig(bits=2, delay=50))
+    samples = collect_messages(OracleAgent(task), task, 100, 4, seed=0)
+    assert 0 < len(samples.delivered_goal) < 100 <= len(samples.sent_goal) * task.slots
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    analyze = sub.choices["analyze"]
+    help = next(a.help for a in analyze._actions if "--samples" in a.option_strings)
+    assert help is not None and "to send in time to arrive; fewer arrive" in help
+    assert collect_messages.__doc__ is not None and "never delivered" in collect_messages.__doc__
 
 
 def test_delay_pairs_each_delivery_with_its_own_message() -> None:

@@ -338,6 +338,25 @@ def test_training_with_one_hot_messages_is_refused_where_it_would_not_fit_and_on
         flags.check_train(cfg)
 
 
+def test_networks_too_large_for_their_grid_are_refused_naming_the_size(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--size 1000` was refused as `invalid hidden=128: the networks: ...`: what made them huge is the million cells
+    their first layers read, not their width, which stays the one named where it is what outgrows memory."""
+    from bitcomm.commands import flags
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(flags, "available_bytes", lambda: 8 << 30)
+    said = "invalid size=1000: the networks (hidden 128), whose first layers read every cell of the 1000x1000 grid: "
+    for argv in (["train", "--size", "1000"], ["compare", "--vary", "size=1000"]):
+        code, lines = run_cli(argv, capsys)
+        assert code == 2 and len(lines) == 1, (argv, lines)
+        assert said in lines[0] and lines[0].endswith("GB available; give a smaller grid"), lines
+    code, lines = run_cli(["train", "--hidden", "100000"], capsys)
+    assert code == 2 and lines[-1].startswith("bitcomm train: error: invalid hidden=100000: the networks: "), lines
+    assert list(tmp_path.iterdir()) == []  # refused before a folder is made
+
+
 def test_training_that_evaluates_held_out_episodes_counts_their_one_hot_tables(monkeypatch: pytest.MonkeyPatch) -> None:
     """`--held-out-every N` plays `held_out_episodes` (1,000) side by side between batches, beside the 2^K-wide
     parameters and a copy of the policy: at 16 bits, 2 MB of one-hot tables per episode, 2 GB for the evaluation

@@ -249,13 +249,14 @@ def _bad_onnx(tmp_path: Path) -> Path:
     ("argv", "named"),
     [
         (["export", "{missing}", "--onnx", "{out}"], "checkpoint"),
-        (["export", "{run}", "--onnx", "{bad}/p.onnx"], "onnx"),  # its folder is a file
+        (["export", "{run}", "--onnx", "{bad}/p.onnx"], "not.onnx' is a file, not a folder"),  # named, not p.onnx
         (["export", "{run}", "--onnx", "{tmp}"], "onnx"),
         (["export", "{run}"], "--onnx"),
         (["export", "{run}", "--onnx", "{run}/checkpoints/ckpt_000000016.safetensors"], "checkpoints folder"),
         (["export", "{run}", "--onnx", "{run}/checkpoints/latest"], "checkpoints folder"),  # card: latest.json
         (["deploy", "--onnx", "{missing}"], "onnx"),
         (["deploy", "--onnx", "{bad}"], "onnx"),
+        (["deploy", "--onnx", "{run}"], "is a folder; give the .onnx file"),  # not "no such file"
         (["deploy", "--onnx", "{out}", "--policy", "oracle"], "onnx"),
         (["deploy", "--onnx", "{reference}", "--size", "5"], "size"),
     ],

@@ -85,6 +85,17 @@ def test_run_without_controller_is_one_error_line(tmp_path: Path, capsys: pytest
     assert err.count("\n") == 1 and LEARNED_UNAVAILABLE in err
 
 
+def test_out_in_a_file_names_that_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`--out afile/x.gif`, `afile` a file: the line said the .gif path "is a file, not a folder"."""
+    from bitcomm.cli import main
+
+    (tmp_path / "afile").write_text("a file\n")
+    assert main(["render", "--policy", "oracle", "--out", str(tmp_path / "afile" / "x.gif")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].endswith(f": {str(tmp_path / 'afile')!r} is a file, not a folder, so nothing can be written in it")
+
+
 def test_threads_flag_sets_torchs_threads_for_a_trained_run(tmp_path: Path, threads, capsys) -> None:
     """`--threads N` (as on eval): a trained RUN's episode is played on N torch threads; the oracle never loads
     torch, so it is not set there; 0 is one error line."""

@@ -128,6 +128,16 @@ def test_a_run_stopped_before_its_first_checkpoint_is_trained_again_not_resumed(
     assert {tuple(s for s, _ in steps) for steps in tensorboard_scalars(run).values()} == {(16,)}  # the old run's gone
 
 
+def test_a_run_without_a_checkpoint_yet_is_called_a_run_by_the_commands_that_read_one(run: Path, capsys) -> None:
+    """variance, eval and render said "(not a bitcomm run)" of a run stopped before its first checkpoint (or still
+    playing toward it); and variance said so of a path that does not exist, where eval says there is no such one."""
+    shutil.rmtree(run / "checkpoints")
+    for command in ("variance", "eval", "render"):
+        line = refused(capsys, command, str(run), naming="a run with no checkpoint yet")
+        assert "not a bitcomm run" not in line and "--checkpoint-seconds" in line
+        refused(capsys, command, str(run / "nothing"), naming="no such file or run folder")
+
+
 def test_a_resume_of_a_run_that_lost_its_latest_json_says_how_to_restore_it(run: Path, capsys) -> None:
     """Not "train it again without --resume", which would remove its checkpoints: the line names the last one and
     the latest.json that resumes from it."""

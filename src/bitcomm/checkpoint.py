@@ -260,6 +260,23 @@ def read_latest(folder: Path, which: str = LATEST) -> dict[str, Any]:
     return dict(pointer)
 
 
+def _no_latest(path: Path | str) -> ConfigError:
+    """Why a folder (or a missing path) has no checkpoint to read: a run folder that has none yet is a run, stopped
+    before its first checkpoint or still playing toward it, not a folder of something else."""
+    from bitcomm.learn.run_folder import is_run_folder  # it imports this module
+
+    p = Path(path)
+    if not p.exists():
+        return _bad(path, "no such file or run folder")
+    if is_run_folder(p.parent if p.name == CHECKPOINTS else p):
+        return _bad(
+            path,
+            "a run with no checkpoint yet: it stopped before its first one, or is still playing toward it (one is "
+            "written every --checkpoint-seconds); wait for that one, or train the run again",
+        )
+    return _bad(path, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
+
+
 def _not_a_file(path: Path) -> str:
     return "is a folder, not a checkpoint file" if path.is_dir() else "is missing"
 
@@ -276,7 +293,7 @@ def resolve(path: Path | str) -> Path:
     if p.is_dir():
         folder = _folder(p)
         if not (folder / LATEST).is_file():
-            raise _bad(path, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
+            raise _no_latest(path)
         p = folder / read_latest(folder)["checkpoint"]
         if not p.is_file():
             raise _bad(folder / LATEST, f"names {p.name}, which {_not_a_file(p)}")
@@ -300,7 +317,7 @@ def checkpoints(run: Path | str) -> list[tuple[int, Path]]:
     Files of an unfinished write (no `.state.pt`) are left out."""
     folder = _folder(run)
     if not (folder / LATEST).is_file():
-        raise _bad(run, f"no {CHECKPOINTS}/{LATEST} in this folder (not a bitcomm run)")
+        raise _no_latest(run)
     return complete(folder)
 
 

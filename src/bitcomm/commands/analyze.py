@@ -36,7 +36,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--samples",
         type=integer(100, MAX_SAMPLES, "minutes of play and a few hundred MB at the top"),
         default=200_000,
-        help="deliveries to collect (default %(default)s)",
+        help="deliveries (message x recipient) to send in time to arrive; fewer arrive where an episode ends "
+        "first (default %(default)s)",
     )
     p.add_argument(
         "--envs", type=integer(1, MAX_BATCH), default=1024, help="episodes played side by side (default %(default)s)"

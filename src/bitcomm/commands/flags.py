@@ -141,6 +141,8 @@ def out_file(text: str) -> Path:
         problem = "is not a regular file (a device, pipe or socket); give a file name"
     elif path.exists() and not (path.stat().st_mode & 0o222 and os.access(path, os.W_OK)):
         problem = "is a read-only file"
+    elif path.parent.exists() and not path.parent.is_dir():  # folder_problem's "is a file" would read as `path`'s
+        problem = f"{str(path.parent)!r} is a file, not a folder, so nothing can be written in it"
     else:
         problem = folder_problem(path.parent)
     if problem:
@@ -189,13 +191,13 @@ def network_bytes(cfg: TrainConfig) -> int:
     return 3 * 16 * (model.hidden * (wide + model.hidden) + model.message_hidden * 4 * task.env.n_agents * 64 + sender)
 
 
-def check_memory(flag: str, value: object, need: int, what: str) -> None:
-    """One error line, with the estimate, when `need` bytes exceed the memory available now."""
+def check_memory(flag: str, value: object, need: int, what: str, hint: str = "") -> None:
+    """One error line, with the estimate, when `need` bytes exceed the memory available now (`hint`: what to
+    give instead, after it)."""
     have = available_bytes()
     if need > have:
-        raise bad_value(
-            flag, value, f"{what}: about {need / BYTES_PER_GB:.1f} GB needed, {have / BYTES_PER_GB:.1f} GB available"
-        )
+        estimate = f"about {need / BYTES_PER_GB:.1f} GB needed, {have / BYTES_PER_GB:.1f} GB available"
+        raise bad_value(flag, value, f"{what}: {estimate}{f'; {hint}' if hint else ''}")
 
 
 def check_play(
@@ -237,6 +239,11 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
     workers = cfg.workers if cfg.mode == "a3c" or cfg.backend == "ray" else 1
     learners = processes * workers
     wider = max(("hidden", "message_hidden", "sender_hidden"), key=lambda name: getattr(cfg.model, name))
+    size, read = cfg.task.env.size, max(cfg.model.conv_channels, default=1) * cfg.task.env.cells
+    if read > getattr(cfg.model, wider):  # the first layers' input, the grid's cells, outweighs their width
+        width = f"{wider.replace('_', '-')} {getattr(cfg.model, wider)}"
+        what = f"the networks ({width}), whose first layers read every cell of the {size}x{size} grid"
+        check_memory("size", size, learners * network_bytes(cfg), what, "give a smaller grid")
     check_memory(wider.replace("_", "-"), getattr(cfg.model, wider), learners * network_bytes(cfg), "the networks")
     batch = cfg.num_envs * workers * processes
     rollouts = play_bytes(task, batch, task.env.max_steps)

@@ -123,6 +123,8 @@ class OnnxController:
     def load(cls, path: str | Path, seed: int | np.random.SeedSequence | None = 0, threads: int = 1) -> OnnxController:
         """From a `.onnx` file written by `bitcomm export`; `seed` drives sampling, `threads` onnxruntime."""
         ort = require("onnxruntime")
+        if Path(path).is_dir():  # a run folder, or export's: "no such file" would send the user looking for one
+            raise ConfigError(f"invalid onnx={str(path)!r}: is a folder; give the .onnx file `bitcomm export` wrote")
         if not Path(path).is_file():
             raise ConfigError(f"invalid onnx={str(path)!r}: no such file")
         options = ort.SessionOptions()

@@ -51,7 +51,9 @@ class MessageSamples(NamedTuple):
 def collect_messages(
     policy: AgentPolicy, task: TaskConfig, samples: int = 200_000, num_envs: int = 1024, seed: int = 0
 ) -> MessageSamples:
-    """Play until at least `samples` deliveries are gathered; vectorized over `num_envs` episodes."""
+    """Play until at least `samples` deliveries (message x recipient) were sent in time to arrive before play
+    stops; vectorized over `num_envs` episodes. Those whose episode ends first are never delivered, so fewer are
+    gathered: playing on until `samples` arrive would never stop where episodes end before the delay."""
     env = VecGoalExchange(task, num_envs, seed=seed)
     act = BatchedPolicy(policy)
     n, C, d = task.env.n_agents, task.env.cells, task.channel.delay
