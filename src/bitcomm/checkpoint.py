@@ -260,11 +260,18 @@ def read_latest(folder: Path, which: str = LATEST) -> dict[str, Any]:
     return dict(pointer)
 
 
+def is_run_folder(out: Path) -> bool:
+    """Whether `out`'s config.json is a run's (`write_config`'s record: a config with its seed and versions)."""
+    try:
+        record = json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(record, dict) and "seed" in record and "versions" in record
+
+
 def _no_latest(path: Path | str) -> ConfigError:
     """Why a folder (or a missing path) has no checkpoint to read: a run folder that has none yet is a run, stopped
     before its first checkpoint or still playing toward it, not a folder of something else."""
-    from bitcomm.learn.run_folder import is_run_folder  # it imports this module
-
     p = Path(path)
     if not p.exists():
         return _bad(path, "no such file or run folder")

@@ -27,8 +27,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def _check_output(path: Path) -> None:
     """Refuse, before any work, an output that cannot be written, or that would replace a file of a training run
     (a checkpoint, `latest.json`, config.json: `--onnx RUN/checkpoints/latest` writes its card to latest.json)."""
-    from bitcomm.checkpoint import LATEST
-    from bitcomm.learn.run_folder import RUN_FILES, is_run_folder
+    from bitcomm.checkpoint import LATEST, is_run_folder
+    from bitcomm.learn.run_folder import RUN_FILES
     from bitcomm.policies.onnx_policy import sidecar_path
 
     if path.is_dir():

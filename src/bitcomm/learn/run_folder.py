@@ -40,6 +40,7 @@ from bitcomm.checkpoint import (
     LATEST,
     clean,
     complete,
+    is_run_folder,
     latest_name,
     load_state,
     load_weights,
@@ -535,15 +536,6 @@ def has_checkpoint(out: Path) -> bool:
 
 RUN_FILES = ("config.json", "metrics.csv", "learning_curve.png", "learning_curve.svg", "tb")
 """The files (and TensorBoard's folder) a run writes at its folder's top, which a fresh run overwrites."""
-
-
-def is_run_folder(out: Path) -> bool:
-    """Whether `out`'s config.json is a run's (`write_config`'s record: a config with its seed and versions)."""
-    try:
-        record = json.loads((out / "config.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(record, dict) and "seed" in record and "versions" in record
 
 
 def check_start(out: Path, resume: bool) -> None:
