@@ -239,12 +239,12 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
     workers = cfg.workers if cfg.mode == "a3c" or cfg.backend == "ray" else 1
     learners = processes * workers
     wider = max(("hidden", "message_hidden", "sender_hidden"), key=lambda name: getattr(cfg.model, name))
+    flag, value, what, hint = wider.replace("_", "-"), getattr(cfg.model, wider), "the networks", ""
     size, read = cfg.task.env.size, max(cfg.model.conv_channels, default=1) * cfg.task.env.cells
-    if read > getattr(cfg.model, wider):  # the first layers' input, the grid's cells, outweighs their width
-        width = f"{wider.replace('_', '-')} {getattr(cfg.model, wider)}"
-        what = f"the networks ({width}), whose first layers read every cell of the {size}x{size} grid"
-        check_memory("size", size, learners * network_bytes(cfg), what, "give a smaller grid")
-    check_memory(wider.replace("_", "-"), getattr(cfg.model, wider), learners * network_bytes(cfg), "the networks")
+    if read > value:  # the first layers' input, the grid's cells, outweighs their width: the size is what to name
+        what = f"the networks ({flag} {value}), whose first layers read every cell of the {size}x{size} grid"
+        flag, value, hint = "size", size, "give a smaller grid"
+    check_memory(flag, value, learners * network_bytes(cfg), what, hint)
     batch = cfg.num_envs * workers * processes
     rollouts = play_bytes(task, batch, task.env.max_steps)
     wide = onehot = 0

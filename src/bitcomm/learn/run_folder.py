@@ -542,7 +542,8 @@ def check_start(out: Path, resume: bool) -> None:
     """One line, before anything is written, for a start `out` cannot take: a resume without a checkpoint, a
     fresh run where a run is, or a fresh run that would overwrite files of `RUN_FILES` that are not a run's. A run
     stopped before its first checkpoint is started again from scratch."""
-    if is_run_folder(out):  # a run being written: the line naming its pid, before `run folder:` is printed
+    is_run = is_run_folder(out)  # read once: the lock, the advice and the overwrite check all ask it
+    if is_run:  # a run being written: the line naming its pid, before `run folder:` is printed
         with run_lock(out):
             pass
     if resume:
@@ -554,7 +555,7 @@ def check_start(out: Path, resume: bool) -> None:
                     f"its {CHECKPOINTS}/{LATEST} is missing, though it holds checkpoints up to {last.name}; to "
                     f'resume from that one, write {LATEST} as {{"checkpoint": "{last.name}", "episodes": {episodes}}}'
                 )
-            elif is_run_folder(out):
+            elif is_run:
                 why = (
                     "this run stopped before its first checkpoint (one is written every --checkpoint-seconds), so "
                     "there is nothing to resume; train it again without --resume"
@@ -566,7 +567,7 @@ def check_start(out: Path, resume: bool) -> None:
     if has_checkpoint(out):
         raise ConfigError(f"invalid out={str(out)!r}: it already holds a run (use --resume, or another --out)")
     present = [name for name in RUN_FILES if (out / name).exists()]
-    if present and not is_run_folder(out):
+    if present and not is_run:
         raise ConfigError(
             f"invalid out={str(out)!r}: it holds {present[0]}, which is not a bitcomm run's and a new run would "
             "overwrite it; give another --out"
