@@ -338,6 +338,21 @@ def test_training_with_one_hot_messages_is_refused_where_it_would_not_fit_and_on
         flags.check_train(cfg)
 
 
+def test_the_memory_refusal_says_how_many_runs_and_workers_its_figure_counts(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`bitcomm compare --jobs 2` checks two runs' memory at once and an A3C run one learner per worker: the line
+    gave a figure twice or four times one run's without saying so."""
+    from bitcomm.commands import flags
+    from bitcomm.learn.config import make_train_config
+
+    cfg = make_train_config("reinforced", TaskConfig(EnvConfig(), ChannelConfig()))
+    a3c = make_train_config("reinforced", TaskConfig(EnvConfig(), ChannelConfig()), mode="a3c", workers=4)
+    monkeypatch.setattr(flags, "available_bytes", lambda: 1 << 10)
+    for config, processes, counted in ((cfg, 1, "1 run(s) at once"), (cfg, 2, "2 run(s) at once"),
+                                       (a3c, 2, "2 run(s) at once, 4 workers each")):  # fmt: skip
+        with pytest.raises(ConfigError, match=f"invalid size=10: the networks \\(hidden 128; {re.escape(counted)}\\)"):
+            flags.check_train(config, processes)
+
+
 def test_networks_too_large_for_their_grid_are_refused_naming_the_size(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -347,13 +362,14 @@ def test_networks_too_large_for_their_grid_are_refused_naming_the_size(
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(flags, "available_bytes", lambda: 8 << 30)
-    said = "invalid size=1000: the networks (hidden 128), whose first layers read every cell of the 1000x1000 grid: "
-    for argv in (["train", "--size", "1000"], ["compare", "--vary", "size=1000"]):
+    for argv, runs in ((["train", "--size", "1000"], 1), (["compare", "--vary", "size=1000"], 2)):
         code, lines = run_cli(argv, capsys)
+        said = f"invalid size=1000: the networks (hidden 128; {runs} run(s) at once), whose first layers read every "
         assert code == 2 and len(lines) == 1, (argv, lines)
         assert said in lines[0] and lines[0].endswith("GB available; give a smaller grid"), lines
     code, lines = run_cli(["train", "--hidden", "100000"], capsys)
-    assert code == 2 and lines[-1].startswith("bitcomm train: error: invalid hidden=100000: the networks: "), lines
+    said = "bitcomm train: error: invalid hidden=100000: the networks (1 run(s) at once): "
+    assert code == 2 and lines[-1].startswith(said), lines
     assert list(tmp_path.iterdir()) == []  # refused before a folder is made
 
 

@@ -238,11 +238,12 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
             raise bad_value(name.replace("_", "-"), getattr(cfg, name), f"must be an integer in [1, {most}]")
     workers = cfg.workers if cfg.mode == "a3c" or cfg.backend == "ray" else 1
     learners = processes * workers
+    at_once = f"{processes} run(s) at once" + (f", {workers} workers each" if workers > 1 else "")  # what is counted
     wider = max(("hidden", "message_hidden", "sender_hidden"), key=lambda name: getattr(cfg.model, name))
-    flag, value, what, hint = wider.replace("_", "-"), getattr(cfg.model, wider), "the networks", ""
+    flag, value, what, hint = wider.replace("_", "-"), getattr(cfg.model, wider), f"the networks ({at_once})", ""
     size, read = cfg.task.env.size, max(cfg.model.conv_channels, default=1) * cfg.task.env.cells
     if read > value:  # the first layers' input, the grid's cells, outweighs their width: the size is what to name
-        what = f"the networks ({flag} {value}), whose first layers read every cell of the {size}x{size} grid"
+        what = f"the networks ({flag} {value}; {at_once}), whose first layers read every cell of the {size}x{size} grid"
         flag, value, hint = "size", size, "give a smaller grid"
     check_memory(flag, value, learners * network_bytes(cfg), what, hint)
     batch = cfg.num_envs * workers * processes
@@ -252,19 +253,15 @@ def check_train(cfg: TrainConfig, processes: int = 1) -> None:
         wide = learners * onehot_bytes(cfg)
         onehot = wide + batch * acting_bytes(task.env.n_agents, task.channel.bits, task.slots)
     if onehot > rollouts:
-        what = f"one-hot messages over 2^{task.channel.bits} words ({learners} learner(s))"
+        what = f"one-hot messages over 2^{task.channel.bits} words ({at_once})"
         check_memory("bits", task.channel.bits, onehot + rollouts, what)
     else:
-        what = f"{batch} episodes of {task.env.max_steps} steps on a {task.env.size}x{task.env.size} grid"
+        what = f"{batch} episodes of {task.env.max_steps} steps on a {task.env.size}x{task.env.size} grid ({at_once})"
         check_memory("num-envs", cfg.num_envs, onehot + rollouts, what)
     if cfg.held_out_every:
         held = processes * min(cfg.held_out_episodes, EVAL_BATCH)
         copy = wide // 4  # the policy's, without gradient or Adam moments (the standard critic's input too: at most)
-        by = (
-            f"the 2^{task.channel.bits}-wide parameters and a copy of the policy ({learners} learner(s))"
-            if wide
-            else ""
-        )
+        by = f"the 2^{task.channel.bits}-wide parameters and a copy of the policy ({at_once})" if wide else ""
         check_play(
             cfg.task,
             "held-out-episodes",
