@@ -139,3 +139,14 @@ def test_deliveries_of_one_episode_are_one_line(tmp_path: Path, capsys: pytest.C
         "bitcomm analyze: error: invalid deliveries=100: all from one episode; the lookup decoder is fitted on half "
         "the episodes and scored on the others, so it needs deliveries from 2 or more (give more --samples or --envs)"
     ], err
+
+
+def test_play_in_which_no_message_arrives_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Random agents on a 2x2 grid end every episode in a few steps, long before a message sent with a delay of 200
+    arrives: no delivery was gathered, and concatenating none was a traceback."""
+    argv = ["analyze", "--policy", "random", "--size", "2", "--bits", "2", "--delay", "200", "--samples", "100",
+            "--envs", "4", "--out", str(tmp_path / "an")]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("bitcomm analyze: error: invalid delay=200: no message arrived"), err
+    assert not (tmp_path / "an").exists()  # refused before anything is written

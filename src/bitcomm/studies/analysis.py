@@ -80,6 +80,13 @@ def collect_messages(
         ring_goal[k], ring_episode[k] = seen, episode
         result, _ = env.step(moves, bits)
         episode[result.finished.env_index] += 1
+    if not deliv_goal:  # every episode ended before a message sent in it arrived: nothing to measure
+        raise bad_value(
+            "delay",
+            d,
+            f"no message arrived in {steps} steps of play: every episode ended within {d} steps of each message "
+            "sent in it; give a shorter --delay, or a policy whose episodes last longer",
+        )
     return MessageSamples(
         np.concatenate(sent_goal), np.concatenate(sent_bits).astype(np.uint8),
         np.concatenate(deliv_goal), np.concatenate(recv_bits).astype(np.uint8), np.concatenate(deliv_episode),
