@@ -11,6 +11,7 @@ import dataclasses
 import errno
 import json
 import os
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -153,8 +154,9 @@ class SpacesEnv(ParallelEnv):
 
 class OddRewardEnv(SignalEnv):
     """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...; "raise": its step raises, as
-    an env's own bug would; "array": `np.array([1.0])`; "missing": the speaker's is left out) from its
-    `from_reset`-th reset on (each copy counts its own; the first copy is also reset once when its spaces are read)."""
+    an env's own bug would; "interrupt": a KeyboardInterrupt comes during its step; "array": `np.array([1.0])`;
+    "missing": the speaker's is left out) from its `from_reset`-th reset on (each copy counts its own; the first
+    copy is also reset once when its spaces are read)."""
 
     def __init__(self, reward: Any = "nan", from_reset: int = 1) -> None:
         super().__init__()
@@ -169,6 +171,8 @@ class OddRewardEnv(SignalEnv):
         if self.resets >= self.from_reset:
             if self.reward == "raise":
                 raise ZeroDivisionError("the env's own bug")
+            if self.reward == "interrupt":  # Ctrl-C a second time while the batch's episodes go on
+                raise KeyboardInterrupt
             if self.reward == "missing":
                 rewards = {a: r for a, r in rewards.items() if a != "speaker"}
             else:
@@ -650,6 +654,34 @@ def test_an_env_that_raises_mid_run_keeps_its_traceback_and_saves_what_was_learn
         f"bitcomm: the env raised this while playing a batch; saved after 8 episodes as {saved}; --resume goes on"
     ]
     assert saved.is_file()
+
+
+def test_ctrl_c_again_while_a_batch_plays_on_saves_the_batches_before_and_resume_plays_it_afresh(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A wrapped env's episodes end only when the env ends them: where they go on, the first Ctrl-C (a stop after
+    the batch) never comes due, and the second ended the run unsaved, losing up to `checkpoint_seconds` of
+    training. It now keeps every batch learned, drops the one being played, and a resume plays that batch as the
+    run would have (the same episodes and draws: its metrics match an uninterrupted run's)."""
+    from bitcomm.learn.run_folder import Stopped
+
+    cfg = config(env=f"{__name__}:OddRewardEnv", env_kwargs={"reward": "interrupt", "from_reset": 3},
+                 checkpoint_seconds=3600, episodes=16)  # fmt: skip
+    with pytest.raises(Stopped) as err:
+        train_env(cfg, tmp_path / "run", progress=False)
+    saved = tmp_path / "run" / "checkpoints" / "ckpt_000000008.safetensors"
+    assert err.value.exit_code == 128 + signal.SIGINT and saved.is_file()
+    assert capsys.readouterr().err.strip() == f"stopped after 8 episodes on SIGINT, saved as {saved}; --resume goes on"
+    resumed = train_env(cfg, tmp_path / "run", resume=True, progress=False)  # fresh copies: 2 resets, no ^C
+    calm = dataclasses.replace(cfg, env_kwargs={"reward": "interrupt", "from_reset": 10**9})
+    whole = train_env(calm, tmp_path / "whole", progress=False)
+    from safetensors.torch import load_file
+
+    wa, wb = load_file(str(whole)), load_file(str(resumed))
+    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+    rows = [(tmp_path / r / "metrics.csv").read_text().splitlines() for r in ("whole", "run")]
+    strip = [[",".join(x for i, x in enumerate(line.split(",")) if i != 3) for line in r] for r in rows]  # wall_s
+    assert strip[0] == strip[1] and len(strip[0]) == 3
 
 
 @pytest.mark.usefixtures("trust_test_envs")

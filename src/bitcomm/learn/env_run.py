@@ -11,6 +11,7 @@ env copies are stepped in worker processes, which changes no episode.
 
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from bitcomm.learn.run_folder import (
     read_json_object,
     restore_learner,
     save_learner,
+    stopped,
     stops_in_one_line,
     train_batches,
     write_config,
@@ -79,12 +81,15 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
         rng = generator.get_state(), torch.get_rng_state()
         try:  # rollout: batch k's episodes are fixed by (seed, k)
             ro = play(vec, learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,)), generator)
-        except Exception as err:  # a worker died (`WorkerDied`), the env gave what it may not (a NaN reward...)
-            if not prog.batches:  # or the env's own code raised; nothing learned yet: no checkpoint, so that the
-                raise  # same command starts afresh
+        except (Exception, KeyboardInterrupt) as err:  # a worker died (`WorkerDied`), the env gave what it may not
+            if not prog.batches:  # (a NaN reward...) or its own code raised, or Ctrl-C came again; nothing learned
+                raise  # yet: no checkpoint, so that the same command starts afresh
             # the learner is as the last batch left it: save that, as a stop signal would,
             generator.set_state(rng[0])  # and the draws as they were, so a resume plays this batch as it would have
             torch.set_rng_state(rng[1])
+            if isinstance(err, KeyboardInterrupt):  # the second Ctrl-C, where the batch's episodes do not end (the
+                # first asks for a stop after the batch): the batch is dropped, the batches before are kept
+                raise stopped(signal.SIGINT, prog.episodes, save(None)) from None
             saved_as = f"saved after {prog.episodes} episodes as {save(None)}; --resume goes on"
             if isinstance(err, ConfigError):
                 raise ConfigError(f"{err}; {saved_as}") from None
