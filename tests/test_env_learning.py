@@ -818,8 +818,16 @@ def test_the_memory_check_counts_what_an_env_run_holds(monkeypatch: pytest.Monke
     monkeypatch.setattr(flags, "available_bytes", lambda: 8 << 30)  # 3 M inputs x 64 x 16 bytes: 2.9 GB, fits
     env_train.check_env([big])
     monkeypatch.setattr(flags, "available_bytes", lambda: 2 << 30)
-    with pytest.raises(ConfigError, match="invalid hidden=64: the networks \\(2 agents observing 1,000,000 numbers"):
+    with pytest.raises(ConfigError) as refused:
         env_train.check_env([big])
+    said = str(refused.value)
+    assert said.startswith(
+        "invalid hidden=64: the networks (2 agents observing 1,000,000 numbers, a state of 2,000,000"
+    )
+    assert said.endswith(
+        "; the first layers read every number observed and of the state: give a narrower --hidden or an "
+        "env that observes fewer"
+    )
 
 
 @pytest.mark.usefixtures("trust_test_envs")  # the run is read back

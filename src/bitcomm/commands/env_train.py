@@ -156,7 +156,12 @@ def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1, eval_episod
     for cfg in configs:
         h = cfg.hidden  # the policy's and the critic's first layers and hidden layers, x16: gradient and Adam
         layers = (layout.obs_dim + layout.state_size) * h[0] + 2 * sum(a * b for a, b in zip(h, h[1:], strict=False))
-        check_memory("hidden", h[0], processes * layers * 16, f"the networks ({seen}; {processes} run(s) at once)")
+        hint = ""
+        if layout.obs_dim + layout.state_size > h[0]:  # the env's observation, not the width, is what weighs
+            hint = "the first layers read every number observed and of the state: give a narrower --hidden or an env"
+            hint += " that observes fewer"
+        what = f"the networks ({seen}; {processes} run(s) at once)"
+        check_memory("hidden", h[0], processes * layers * 16, what, hint)
         batch = processes * cfg.num_envs
         buffers = processes * layers * 16 + held_step_bytes(layout, batch)
         onehot = 0
