@@ -330,6 +330,22 @@ def test_time_to_a_level_is_the_first_batch_below_it() -> None:
     assert first_below(curve, 5.0) is None
 
 
+def test_a_level_at_or_above_the_training_cut_is_not_timed(tmp_path: Path) -> None:
+    """A rolling length of episodes cut at 16 steps is below 16 from the first batch on: a run whose messages are all
+    dropped "reached 2x the oracle" at its first batch where the oracle waits 8 steps for its goal (2x is over 16).
+    Such a level is reported as not timed, in summary.json and both tables; a level below the cut still is."""
+    out = tmp_path / "out"
+    argv = ["compare", *TINY, "--delay", "8", "--techniques", "no-comm", "--seeds", "1", "--episodes", "16"]
+    assert main([*argv, "--jobs", "1", "--out", str(out)]) == 0
+    (c,) = json.loads((out / "summary.json").read_text())["configurations"]
+    assert 2 * c["oracle_mean_episode_length"] >= 16 > 1.15 * c["oracle_mean_episode_length"]
+    assert c["reached"]["2x"] == {"seeds": 0, "of": 1, "episodes": None, "wall_s": None, "above_cut": 16}
+    assert c["runs"][0]["reached"]["2x"] is None
+    assert "above_cut" not in c["reached"]["1.15x"]
+    table = (out / "table.md").read_text()
+    assert "| above the 16-step training cut | " in table and "; 2x: above the cut; 1.15x: " in table
+
+
 @pytest.mark.parametrize(
     ("text", "says"),
     [

@@ -599,6 +599,13 @@ def read_curve(folder: Path) -> Curve:
     return Curve(*read_columns(folder, CURVE_COLUMNS))
 
 
+def training_cut(run: Run) -> int:
+    """The steps at which the run's training episodes are cut (`train_max_steps`, else the task's `max_steps`): its
+    rolling length never exceeds it, so a level at or above it is met by the first batch, whatever was learned (a
+    run without messages "reached" 2x an oracle that waits 16 steps for its goal, with 32-step episodes)."""
+    return int(typing.cast("TrainConfig", run.train).training_task.env.max_steps)
+
+
 def first_below(curve: Curve, level: float) -> dict[str, float] | None:
     """Episodes and training seconds when the rolling mean episode length first fell below `level`."""
     below = np.flatnonzero(curve.length_rolling < level)
@@ -770,13 +777,14 @@ def summarize(
     for conf in dict.fromkeys(r.configuration for r in runs):
         result = oracle[conf.task_variant]
         level = result.mean_episode_length if result is not None else None
-        records = []
+        records, cut = [], training_cut(next(r for r in runs if r.configuration == conf))
+        timed = {m: m * level for m in THRESHOLDS if level is not None and m * level < cut}  # the levels measured
         for run in (r for r in runs if r.configuration == conf):
             curve, evaluation = curves[run.folder], evaluation_of(run, cfg)
             record = run_record(run, curve, cfg.out, equal_wall, marks, "length_rolling", "episode_length")
             record.update({play: evaluation[play] for play in PLAYS})
             record["reached"] = {
-                threshold_key(m): None if level is None else first_below(curve, m * level) for m in THRESHOLDS
+                threshold_key(m): first_below(curve, timed[m]) if m in timed else None for m in THRESHOLDS
             }
             records.append(record)
         entry: dict[str, Any] = {
@@ -801,6 +809,7 @@ def summarize(
                 "of": len(records),
                 "episodes": interval([h["episodes"] for h in hits]),
                 "wall_s": interval([h["wall_s"] for h in hits]),
+                **({} if m in timed else {"above_cut": cut}),
             }
         entry["runs"] = records
         configurations.append(entry)
@@ -961,7 +970,10 @@ def _seed_cell(configuration: dict[str, Any], run: dict[str, Any]) -> str:
     if configuration["oracle_mean_episode_length"] is None:
         return text
     for key, hit in run["reached"].items():
-        text += f"; {key}: " + ("—" if hit is None else f"{hit['episodes']:,} ep, {hit['wall_s']:,.0f} s")
+        untimed = "above_cut" in configuration["reached"][key]
+        text += f"; {key}: " + (
+            "above the cut" if untimed else "—" if hit is None else f"{hit['episodes']:,} ep, {hit['wall_s']:,.0f} s"
+        )
     return text
 
 
@@ -975,6 +987,8 @@ def cell(value: dict[str, Any] | None, fmt: str) -> str:
 def _reached_cell(reached: dict[str, Any] | None, what: str, fmt: str) -> str:
     if reached is None:
         return "no oracle"
+    if "above_cut" in reached:
+        return f"above the {reached['above_cut']}-step training cut"
     if not reached["seeds"]:
         return f"not reached (0/{reached['of']})"
     return f"{cell(reached[what], fmt)} ({reached['seeds']}/{reached['of']})"
@@ -1023,7 +1037,8 @@ def table_markdown(summary: dict[str, Any]) -> str:
         summary,
         _seed_cell,
         "Length of each run's final policy, sampled (greedy; channel cut), on the evaluation episodes; then the "
-        "training episodes and seconds at which its rolling length first fell below each level (—: never).",
+        "training episodes and seconds at which its rolling length first fell below each level (—: never; above the "
+        "cut: a level no shorter than training's episodes, which every rolling length is below).",
     )
     lines += along_budget_markdown(summary, "length", ".2f")
     return "\n".join(lines) + "\n"
