@@ -9,8 +9,10 @@ import json
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -425,8 +427,6 @@ def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path)
     stopped after the batch they are on and saved rather than waited for to their budget, so the next call resumes
     them. (Ended at once, as they were, runs a minute long lost all they had played before their first checkpoint.)"""
     import multiprocessing
-    import signal
-    import time
 
     folders = [tmp_path / "runs" / "improved-bitwise" / f"seed{seed}" for seed in (0, 1)]
     start = time.monotonic()
@@ -460,8 +460,6 @@ def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path)
 def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
     """`kill PID` of a study, or a scheduler's time limit, used to end it (and, with it, its runs) at once; while the
     study waits on its runs SIGTERM is an interrupt, so the runs save their batch first (`stop_runs`), exit 143."""
-    import signal
-
     from bitcomm.learn.run_folder import Stopped
     from bitcomm.studies.compare import sigterm_interrupts
 
@@ -471,6 +469,31 @@ def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
         raise AssertionError("not reached: the handler raises as the signal arrives")
     assert stopped.value.exit_code == 143
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+def test_timeout_of_a_study_saves_the_batch_each_run_is_on(tmp_path: Path, signum: signal.Signals) -> None:
+    """`timeout -s INT` (or plain `timeout`, SIGTERM) signals the study, then its process group: the second signal
+    ended the runs at once while the study waited for them to save, and the group's SIGTERM killed them outright.
+    Either way they lost all they had played since their last checkpoint; now each saves the batch it is on."""
+    folder = tmp_path / "runs" / "improved-bitwise" / "seed0"
+    argv = [*TINY, "--episodes", "100000", "--seeds", "1", "--techniques", "improved-bitwise"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bitcomm.cli", "compare", *argv, "--jobs", "1", "--out", str(tmp_path)],
+        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, even under CI
+    )  # fmt: skip
+    deadline = time.monotonic() + 90
+    while not (folder / "metrics.csv").is_file() or len((folder / "metrics.csv").read_text().splitlines()) < 3:
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr and proc.stderr.read()
+        time.sleep(0.05)
+    proc.send_signal(signum)  # what `timeout` does: the command, then its process group
+    os.killpg(proc.pid, signum)
+    _, err = proc.communicate(timeout=90)
+    assert proc.returncode == 128 + signum, err
+    played = int((folder / "metrics.csv").read_text().splitlines()[-1].split(",")[1])
+    saved = json.loads((folder / "checkpoints" / "latest.json").read_text())["episodes"]
+    assert "stopped after" in err and saved == played
 
 
 def test_a_quick_studys_equal_wall_clock_is_not_read_as_0_seconds() -> None:

@@ -429,6 +429,9 @@ def _init_worker(parent: int) -> None:
     from bitcomm.worker_exit import end_with_parent
 
     end_with_parent(parent)  # a study killed alone must not leave its runs training
+    # out of the study's process group: what signals the group (`timeout`, `kill -- -PGID`) reaches the parent alone,
+    # which asks each run to save its batch (`stop_runs`); a SIGTERM of the group ended them at once, unsaved
+    os.setpgrp()
     torch.set_num_threads(1)  # parallel runs must not share (or fight over) thread pools
     # an idle worker ignores Ctrl-C: one dying of it between runs would break the pool, which then ends the others
     # at once, saving or not (`execute` takes Ctrl-C while it works on a run)
@@ -498,11 +501,37 @@ def execute_all(
                 run, status = futures[future], future.result()
                 log(f"[{k}/{len(todo)}] {describe(run, status, cfg)}")
         except BaseException:  # Ctrl-C, SIGTERM or an alarm in this process only: stop the running runs
-            # no public way before 3.14; taken before shutdown, which drops the pool's reference to its processes
-            running = list((getattr(pool, "_processes", None) or {}).values())
-            pool.shutdown(wait=False, cancel_futures=True)
-            stop_runs(running)  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
+            with repeats_count_once(time.monotonic()):
+                # no public way before 3.14; taken before shutdown, which drops the pool's reference to its processes
+                running = list((getattr(pool, "_processes", None) or {}).values())
+                pool.shutdown(wait=False, cancel_futures=True)
+                stop_runs(running)  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
             raise
+
+
+@contextlib.contextmanager
+def repeats_count_once(since: float) -> Iterator[None]:
+    """While the study stops its runs after an interrupt at `since`, the same interrupt within `REPEAT_S` of it is that
+    one again: `timeout` signals the study, then its process group, which holds the study too, and the second signal
+    ended the runs at once, unsaved (`bitcomm.learn.run_folder.REPEAT_S`). One later still ends them at once."""
+    from bitcomm.learn.run_folder import REPEAT_S
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    taken = {s: h for s in (signal.SIGINT, signal.SIGTERM) if callable(h := signal.getsignal(s))}
+
+    def again(signum: int, frame: Any) -> None:
+        if time.monotonic() - since >= REPEAT_S:
+            taken[signal.Signals(signum)](signum, frame)
+
+    for s in taken:
+        signal.signal(s, again)
+    try:
+        yield
+    finally:
+        for s, handler in taken.items():
+            signal.signal(s, handler)
 
 
 @contextlib.contextmanager
@@ -527,9 +556,9 @@ def sigterm_interrupts() -> Iterator[None]:
 
 
 def stop_runs(processes: list[Any], grace_s: float = STOP_GRACE_S) -> None:
-    """Ask each worker to stop its run after the batch it is on and save it (SIGINT: what Ctrl-C sends the whole
-    process group, where this second one counts once, `bitcomm.learn.run_folder.REPEAT_S`), and wait up to
-    `grace_s` for them to end; then, or on a second interrupt, end them at once. Ended at once, a run stopped
+    """Ask each worker to stop its run after the batch it is on and save it (SIGINT, as Ctrl-C would: the workers are
+    out of the terminal's process group, `_init_worker`), and wait up to `grace_s` for them to end; then, or on a
+    second interrupt (`repeats_count_once`), end them at once. Ended at once, a run stopped
     before its first checkpoint (every `checkpoint_seconds`) would start again from nothing."""
     for process in processes:
         if process.is_alive():
