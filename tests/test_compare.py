@@ -40,6 +40,7 @@ from bitcomm.studies.compare import (
     rolling_at_episodes,
     run_status,
     seconds_phrase,
+    task_title,
 )
 
 TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
@@ -323,6 +324,14 @@ def test_the_table_names_the_machines_whose_seconds_it_mixes() -> None:
     assert mixed.startswith("The runs ran on 2 machines (A, 2 cores: 2 runs; B, 16 cores: 2 runs)")
     assert "seconds compare only between runs of one machine" in mixed
     assert "do not record their machines" in machines_sentence(summary(["unrecorded"], ["unrecorded"]))
+
+
+def test_the_figure_names_the_task_less_what_its_panels_vary() -> None:
+    """curves.png's title named the base task's grid and K alone: a study of 3 agents with bit flips read as the
+    paper's task, and one varying bits=3,4 was titled "K = 7" above both panels."""
+    task = TaskConfig(EnvConfig(size=4, n_agents=3), ChannelConfig(bits=4, delay=2, flip_prob=0.05))
+    assert task_title(task) == "4x4 grid, 3 agents, K = 4, delay 2, flip 0.05, drop 0"
+    assert task_title(task, {"bits": (3, 4), "drop_prob": (0, 0.1)}) == "4x4 grid, 3 agents, delay 2, flip 0.05"
 
 
 def test_time_to_a_level_is_the_first_batch_below_it() -> None:
