@@ -40,8 +40,8 @@ from bitcomm.studies.compare import (
     rolling_at_episodes,
     run_status,
     seconds_phrase,
-    task_title,
 )
+from bitcomm.studies.tables import task_title
 
 TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
         "--eval-episodes", "50"]  # fmt: skip

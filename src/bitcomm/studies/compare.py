@@ -59,6 +59,7 @@ from bitcomm.learn.recipes import DEFAULT_RECIPE
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policies.source import TASK_FLAGS
 from bitcomm.stats import mean_interval
+from bitcomm.studies.tables import task_title
 
 if TYPE_CHECKING:
     from bitcomm.learn.config import TrainConfig
@@ -947,22 +948,6 @@ def plot_curves(
     task = task_title(cfg.task, cfg.vary)
     fig.suptitle(f"{recipe}{sep if task else ''}{task}: mean and 95% interval over seeds", fontsize=10)
     save_figure(fig, path)
-
-
-def task_title(task: TaskConfig, varied: Iterable[str] = ()) -> str:
-    """The figure's words for the study's task, as table.md's Task line names it, less the `varied` options that each
-    panel's title names (a study varying bits=3,4 was titled "K = 7" above both panels, and never named its agents,
-    delay or noise)."""
-    env, channel = task.env, task.channel
-    words = {
-        "size": f"{env.size}x{env.size} grid",
-        "agents": f"{env.n_agents} agents",
-        "bits": f"K = {channel.bits}",
-        "delay": f"delay {channel.delay}",
-        "flip_prob": f"flip {channel.flip_prob:g}",
-        "drop_prob": f"drop {channel.drop_prob:g}",
-    }
-    return ", ".join(text for name, text in words.items() if name not in varied)
 
 
 def markdown_row(cells: list[str]) -> str:
