@@ -40,6 +40,7 @@ from bitcomm.studies.compare import (
     rolling_at_episodes,
     run_status,
     seconds_phrase,
+    task_sentence,
 )
 from bitcomm.studies.tables import task_title
 
@@ -332,6 +333,9 @@ def test_the_figure_names_the_task_less_what_its_panels_vary() -> None:
     task = TaskConfig(EnvConfig(size=4, n_agents=3), ChannelConfig(bits=4, delay=2, flip_prob=0.05))
     assert task_title(task) == "4x4 grid, 3 agents, K = 4, delay 2, flip 0.05, drop 0"
     assert task_title(task, {"bits": (3, 4), "drop_prob": (0, 0.1)}) == "4x4 grid, 3 agents, delay 2, flip 0.05"
+    # table.md named the base value of a varied option too: "3 agents ...; varied agents: 3, 4"
+    study = {"task": task.to_dict(), "vary": {"agents": (3, 4)}}
+    assert task_sentence(study) == "4x4 grid, K = 4, delay 2, flip 0.05, drop 0; varied agents: 3, 4"
 
 
 def test_time_to_a_level_is_the_first_batch_below_it() -> None:

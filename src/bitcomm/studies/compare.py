@@ -1022,10 +1022,16 @@ def _reached_cell(reached: dict[str, Any] | None, what: str, fmt: str) -> str:
     return f"{cell(reached[what], fmt)} ({reached['seeds']}/{reached['of']})"
 
 
+def task_sentence(study: dict[str, Any]) -> str:
+    """table.md's words for a study's task: the options it holds, then the values of those it varies (the base value
+    of a varied option, which no run played, is left out)."""
+    held = task_title(TaskConfig.from_dict(study["task"]), study["vary"])
+    return held + "".join(f"; varied {k}: {', '.join(_format(x) for x in v)}" for k, v in study["vary"].items())
+
+
 def table_markdown(summary: dict[str, Any]) -> str:
     """table.md: one row per configuration (and the oracle per variant), mean ± 95% half-interval over seeds."""
     study = summary["study"]
-    env, channel = study["task"]["env"], study["task"]["channel"]
     keys = study["thresholds"]
     header = ["configuration", "seeds", "length (sampled)", "return (sampled)", "length (greedy)", "return (greedy)",
               "length, channel cut at evaluation", *(f"episodes to {k} oracle" for k in keys),
@@ -1035,11 +1041,9 @@ def table_markdown(summary: dict[str, Any]) -> str:
         f"# bitcomm compare: {recipe_phrase(study['recipe'], study['learning'])}, "
         f"{runs_phrase(study, summary['configurations'])}",
         "",
-        f"Task: {env['size']}x{env['size']} grid, {env['n_agents']} agents, K = {channel['bits']} bits, delay "
-        f"{channel['delay']}, flip {channel['flip_prob']:g}, drop {channel['drop_prob']:g}"
-        + "".join(f"; varied {k}: {', '.join(_format(x) for x in v)}" for k, v in study["vary"].items())
-        + f". Evaluation: {study['eval_episodes']} episodes of seed {study['eval_seed']}: sampled, greedy, and "
-        "sampled with every message dropped (the channel cut: what the same policy does without communication).",
+        f"Task: {task_sentence(study)}. Evaluation: {study['eval_episodes']} episodes of seed {study['eval_seed']}: "
+        "sampled, greedy, and sampled with every message dropped (the channel cut: what the same policy does without "
+        "communication).",
         "Each cell is the mean ± the 95% half-interval over seeds (Student t); (k/n): the seeds that reached the "
         "level, averaged over those; seconds are training wall time, with runs sharing the machine's cores. The "
         "last column reads every run's rolling mean at the quickest run's training time (equal wall-clock). "
