@@ -115,8 +115,8 @@ def test_delay_pairs_each_delivery_with_its_own_message() -> None:
 
 def test_cli_writes_heatmaps_summary_and_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "an"
-    argv = ["analyze", "--policy", "oracle", "--size", "4", "--bits", "4", "--samples", "5000", "--envs", "128"]
-    assert main([*argv, "--out", str(out), "--json"]) == 0
+    argv = ["analyze", "--policy", "oracle", "--size", "4", "--agents", "3", "--bits", "4", "--delay", "2"]
+    assert main([*argv, "--samples", "5000", "--envs", "128", "--out", str(out), "--json"]) == 0
     figures = json.loads(capsys.readouterr().out)
     assert figures["transmitted_bits"] == pytest.approx(figures["goal_entropy_bits"], abs=1e-6)
     assert len(figures["per_bit"]) == 4 and figures["capacity_bits"] == 4.0
@@ -127,6 +127,9 @@ def test_cli_writes_heatmaps_summary_and_json(tmp_path: Path, capsys: pytest.Cap
     assert set(RECORDED) <= set(record)
     summary = (out / "summary.md").read_text()
     assert "# Protocol analysis" in summary and "bits.png" in summary and summary.count("\n| ") >= 4 + 5
+    # the task in full: it named neither the agents nor the delay, so 3 agents at delay 2 read as the paper's two
+    assert "Task: 4x4 grid, 3 agents, K = 4, delay 2, flip 0, drop 0. " in summary
+    assert figures["task"] == "4x4 grid, 3 agents, K = 4, delay 2, flip 0, drop 0"
 
 
 def test_deliveries_of_one_episode_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

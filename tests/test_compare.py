@@ -9,8 +9,10 @@ import json
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +40,9 @@ from bitcomm.studies.compare import (
     rolling_at_episodes,
     run_status,
     seconds_phrase,
+    task_sentence,
 )
+from bitcomm.studies.tables import task_title
 
 TINY = ["--size", "3", "--bits", "4", "--max-steps", "16", "--num-envs", "16", "--epochs", "1", "--minibatches", "1",
         "--eval-episodes", "50"]  # fmt: skip
@@ -323,11 +327,38 @@ def test_the_table_names_the_machines_whose_seconds_it_mixes() -> None:
     assert "do not record their machines" in machines_sentence(summary(["unrecorded"], ["unrecorded"]))
 
 
+def test_the_figure_names_the_task_less_what_its_panels_vary() -> None:
+    """curves.png's title named the base task's grid and K alone: a study of 3 agents with bit flips read as the
+    paper's task, and one varying bits=3,4 was titled "K = 7" above both panels."""
+    task = TaskConfig(EnvConfig(size=4, n_agents=3), ChannelConfig(bits=4, delay=2, flip_prob=0.05))
+    assert task_title(task) == "4x4 grid, 3 agents, K = 4, delay 2, flip 0.05, drop 0"
+    assert task_title(task, {"bits": (3, 4), "drop_prob": (0, 0.1)}) == "4x4 grid, 3 agents, delay 2, flip 0.05"
+    # table.md named the base value of a varied option too: "3 agents ...; varied agents: 3, 4"
+    study = {"task": task.to_dict(), "vary": {"agents": (3, 4)}}
+    assert task_sentence(study) == "4x4 grid, K = 4, delay 2, flip 0.05, drop 0; varied agents: 3, 4"
+
+
 def test_time_to_a_level_is_the_first_batch_below_it() -> None:
     steps = np.array([16.0, 32.0, 48.0])
     curve = Curve(steps, np.array([1.0, 2.5, 4.0]), np.array([20.0, 9.0, 5.0]), steps, -steps)
     assert first_below(curve, 10.0) == {"episodes": 32, "wall_s": 2.5}
     assert first_below(curve, 5.0) is None
+
+
+def test_a_level_at_or_above_the_training_cut_is_not_timed(tmp_path: Path) -> None:
+    """A rolling length of episodes cut at 16 steps is below 16 from the first batch on: a run whose messages are all
+    dropped "reached 2x the oracle" at its first batch where the oracle waits 8 steps for its goal (2x is over 16).
+    Such a level is reported as not timed, in summary.json and both tables; a level below the cut still is."""
+    out = tmp_path / "out"
+    argv = ["compare", *TINY, "--delay", "8", "--techniques", "no-comm", "--seeds", "1", "--episodes", "16"]
+    assert main([*argv, "--jobs", "1", "--out", str(out)]) == 0
+    (c,) = json.loads((out / "summary.json").read_text())["configurations"]
+    assert 2 * c["oracle_mean_episode_length"] >= 16 > 1.15 * c["oracle_mean_episode_length"]
+    assert c["reached"]["2x"] == {"seeds": 0, "of": 1, "episodes": None, "wall_s": None, "above_cut": 16}
+    assert c["runs"][0]["reached"]["2x"] is None
+    assert "above_cut" not in c["reached"]["1.15x"]
+    table = (out / "table.md").read_text()
+    assert "| above the 16-step training cut | " in table and "; 2x: above the cut; 1.15x: " in table
 
 
 @pytest.mark.parametrize(
@@ -409,8 +440,6 @@ def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path)
     stopped after the batch they are on and saved rather than waited for to their budget, so the next call resumes
     them. (Ended at once, as they were, runs a minute long lost all they had played before their first checkpoint.)"""
     import multiprocessing
-    import signal
-    import time
 
     folders = [tmp_path / "runs" / "improved-bitwise" / f"seed{seed}" for seed in (0, 1)]
     start = time.monotonic()
@@ -444,8 +473,6 @@ def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path)
 def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
     """`kill PID` of a study, or a scheduler's time limit, used to end it (and, with it, its runs) at once; while the
     study waits on its runs SIGTERM is an interrupt, so the runs save their batch first (`stop_runs`), exit 143."""
-    import signal
-
     from bitcomm.learn.run_folder import Stopped
     from bitcomm.studies.compare import sigterm_interrupts
 
@@ -455,6 +482,31 @@ def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
         raise AssertionError("not reached: the handler raises as the signal arrives")
     assert stopped.value.exit_code == 143
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+def test_timeout_of_a_study_saves_the_batch_each_run_is_on(tmp_path: Path, signum: signal.Signals) -> None:
+    """`timeout -s INT` (or plain `timeout`, SIGTERM) signals the study, then its process group: the second signal
+    ended the runs at once while the study waited for them to save, and the group's SIGTERM killed them outright.
+    Either way they lost all they had played since their last checkpoint; now each saves the batch it is on."""
+    folder = tmp_path / "runs" / "improved-bitwise" / "seed0"
+    argv = [*TINY, "--episodes", "100000", "--seeds", "1", "--techniques", "improved-bitwise"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bitcomm.cli", "compare", *argv, "--jobs", "1", "--out", str(tmp_path)],
+        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, even under CI
+    )  # fmt: skip
+    deadline = time.monotonic() + 90
+    while not (folder / "metrics.csv").is_file() or len((folder / "metrics.csv").read_text().splitlines()) < 3:
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr and proc.stderr.read()
+        time.sleep(0.05)
+    proc.send_signal(signum)  # what `timeout` does: the command, then its process group
+    os.killpg(proc.pid, signum)
+    _, err = proc.communicate(timeout=90)
+    assert proc.returncode == 128 + signum, err
+    played = int((folder / "metrics.csv").read_text().splitlines()[-1].split(",")[1])
+    saved = json.loads((folder / "checkpoints" / "latest.json").read_text())["episodes"]
+    assert "stopped after" in err and saved == played
 
 
 def test_a_quick_studys_equal_wall_clock_is_not_read_as_0_seconds() -> None:

@@ -140,6 +140,8 @@ def test_cli_writes_csv_markdown_png_and_json(run_dir: Path, tmp_path: Path, cap
         assert float(r["ratio"]) == pytest.approx(float(r["var_improved"]) / float(r["var_standard"]))
         assert -1 <= float(r["cosine"]) <= 1
     table = (out / "variance.md").read_text().splitlines()
+    # the task in full: a title of grid, K and delay alone read a run whose messages all drop as one that talks
+    assert table[0] == "# Gradient variance of the two estimators: 3x3 grid, 2 agents, K = 2, delay 1, flip 0, drop 0"
     assert sum(line.startswith("| 16 |") or line.startswith("| 32 |") for line in table) == 6
     assert (out / "variance.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "variance.svg").read_text().startswith("<?xml")
@@ -209,7 +211,8 @@ def test_a_checkpoint_named_twice_or_of_another_task_is_one_line(
     assert main(["variance", str(run_dir), str(other), *quick]) == 2
     mine = select_stages(other, "latest")[0]
     assert capsys.readouterr().err.strip().splitlines() == [
-        f"bitcomm variance: error: invalid RUN_OR_CHECKPOINT='{mine}': its task (4x4 grid, K = 2, delay 1) is not "
-        f"{latest}'s (3x3 grid, K = 2, delay 1); one table measures one task: run bitcomm variance once per task"
+        f"bitcomm variance: error: invalid RUN_OR_CHECKPOINT='{mine}': its task (4x4 grid, 2 agents, K = 2, delay 1, "
+        f"flip 0, drop 0) is not {latest}'s (3x3 grid, 2 agents, K = 2, delay 1, flip 0, drop 0); one table measures "
+        "one task: run bitcomm variance once per task"
     ]
     assert not (tmp_path / "variance.csv").exists()

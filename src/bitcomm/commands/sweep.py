@@ -14,6 +14,7 @@ from bitcomm.config import TaskConfig
 from bitcomm.errors import bad_value
 from bitcomm.policies.source import add_policy_flags, sources_from_args
 from bitcomm.studies.sweep import DEFAULT_SWEEP, SWEEPABLE, parse_param, plot_sweep, run_sweep, with_param, write_csv
+from bitcomm.studies.tables import task_title
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -66,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     points = run_sweep(sources, task, params, episodes, args.seed)
     out = Path(args.out)
     csv_path = write_csv(points, out / "sweep.csv")
-    png_path = plot_sweep(points, out / "sweep.png", f"{task.env.size}x{task.env.size} grid, K = {task.channel.bits}")
+    png_path = plot_sweep(points, out / "sweep.png", f"from {task_title(task)}")  # each panel varies one of it
     write_provenance(args, out, task)
     if args.json:
         json.dump([p.row() for p in points], sys.stdout)

@@ -23,6 +23,7 @@ from bitcomm.commands.flags import (
     use_threads,
 )
 from bitcomm.errors import bad_value, plural
+from bitcomm.studies.tables import task_title
 
 if TYPE_CHECKING:
     from bitcomm.config import TaskConfig
@@ -120,11 +121,6 @@ def check_one_task(files: list[Path], tasks: list[TaskConfig]) -> None:
                 str(file),
                 f"{what} {files[0]}'s ({first}); one table measures one task: run bitcomm variance once per task",
             )
-
-
-def task_title(task: TaskConfig) -> str:
-    """What the title and a refusal name a task by (its shape and delay, as `--delay` changes it)."""
-    return f"{task.env.size}x{task.env.size} grid, K = {task.channel.bits}, delay {task.channel.delay}"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -36,6 +36,7 @@ from bitcomm.config import TaskConfig
 from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.errors import bad_value
 from bitcomm.policies.agent_policies import AgentPolicy, BatchedPolicy
+from bitcomm.studies.tables import task_title
 
 
 class MessageSamples(NamedTuple):
@@ -170,6 +171,8 @@ class ProtocolReport:
     """Summary figures of `analyze` (the `--json` output)."""
 
     policy: str
+    task: str
+    """The task played, as titles name it (`bitcomm.studies.tables.task_title`): summary.md named no agents or delay."""
     bits: int
     size: int
     flip_prob: float
@@ -212,6 +215,7 @@ def analyze_samples(samples: MessageSamples, task: TaskConfig, policy: str = "",
     n_goals, n_patterns = np.unique(dgoal).size, np.unique(received).size
     return ProtocolReport(
         policy=policy,
+        task=task_title(task),
         bits=K,
         size=S,
         flip_prob=task.channel.flip_prob,
@@ -273,8 +277,7 @@ def markdown_summary(report: ProtocolReport, heatmap_name: str | None = None) ->
     lines = [
         f"# Protocol analysis: {r.policy}",
         "",
-        f"Task: {r.size}x{r.size} grid, K = {r.bits} bits, flip_prob = {r.flip_prob}, drop_prob = {r.drop_prob}. "
-        f"{r.messages} messages, {r.deliveries} deliveries (plug-in estimates).",
+        f"Task: {r.task}. {r.messages} messages, {r.deliveries} deliveries (plug-in estimates).",
         "",
         "| figure | bits |",
         "| --- | --- |",

@@ -59,6 +59,7 @@ from bitcomm.learn.recipes import DEFAULT_RECIPE
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policies.source import TASK_FLAGS
 from bitcomm.stats import mean_interval
+from bitcomm.studies.tables import task_title
 
 if TYPE_CHECKING:
     from bitcomm.learn.config import TrainConfig
@@ -429,6 +430,9 @@ def _init_worker(parent: int) -> None:
     from bitcomm.worker_exit import end_with_parent
 
     end_with_parent(parent)  # a study killed alone must not leave its runs training
+    # out of the study's process group: what signals the group (`timeout`, `kill -- -PGID`) reaches the parent alone,
+    # which asks each run to save its batch (`stop_runs`); a SIGTERM of the group ended them at once, unsaved
+    os.setpgrp()
     torch.set_num_threads(1)  # parallel runs must not share (or fight over) thread pools
     # an idle worker ignores Ctrl-C: one dying of it between runs would break the pool, which then ends the others
     # at once, saving or not (`execute` takes Ctrl-C while it works on a run)
@@ -498,11 +502,37 @@ def execute_all(
                 run, status = futures[future], future.result()
                 log(f"[{k}/{len(todo)}] {describe(run, status, cfg)}")
         except BaseException:  # Ctrl-C, SIGTERM or an alarm in this process only: stop the running runs
-            # no public way before 3.14; taken before shutdown, which drops the pool's reference to its processes
-            running = list((getattr(pool, "_processes", None) or {}).values())
-            pool.shutdown(wait=False, cancel_futures=True)
-            stop_runs(running)  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
+            with repeats_count_once(time.monotonic()):
+                # no public way before 3.14; taken before shutdown, which drops the pool's reference to its processes
+                running = list((getattr(pool, "_processes", None) or {}).values())
+                pool.shutdown(wait=False, cancel_futures=True)
+                stop_runs(running)  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
             raise
+
+
+@contextlib.contextmanager
+def repeats_count_once(since: float) -> Iterator[None]:
+    """While the study stops its runs after an interrupt at `since`, the same interrupt within `REPEAT_S` of it is that
+    one again: `timeout` signals the study, then its process group, which holds the study too, and the second signal
+    ended the runs at once, unsaved (`bitcomm.learn.run_folder.REPEAT_S`). One later still ends them at once."""
+    from bitcomm.learn.run_folder import REPEAT_S
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    taken = {s: h for s in (signal.SIGINT, signal.SIGTERM) if callable(h := signal.getsignal(s))}
+
+    def again(signum: int, frame: Any) -> None:
+        if time.monotonic() - since >= REPEAT_S:
+            taken[signal.Signals(signum)](signum, frame)
+
+    for s in taken:
+        signal.signal(s, again)
+    try:
+        yield
+    finally:
+        for s, handler in taken.items():
+            signal.signal(s, handler)
 
 
 @contextlib.contextmanager
@@ -527,9 +557,9 @@ def sigterm_interrupts() -> Iterator[None]:
 
 
 def stop_runs(processes: list[Any], grace_s: float = STOP_GRACE_S) -> None:
-    """Ask each worker to stop its run after the batch it is on and save it (SIGINT: what Ctrl-C sends the whole
-    process group, where this second one counts once, `bitcomm.learn.run_folder.REPEAT_S`), and wait up to
-    `grace_s` for them to end; then, or on a second interrupt, end them at once. Ended at once, a run stopped
+    """Ask each worker to stop its run after the batch it is on and save it (SIGINT, as Ctrl-C would: the workers are
+    out of the terminal's process group, `_init_worker`), and wait up to `grace_s` for them to end; then, or on a
+    second interrupt (`repeats_count_once`), end them at once. Ended at once, a run stopped
     before its first checkpoint (every `checkpoint_seconds`) would start again from nothing."""
     for process in processes:
         if process.is_alive():
@@ -597,6 +627,13 @@ def read_columns(folder: Path, charts: tuple[str, ...]) -> list[np.ndarray]:
 
 def read_curve(folder: Path) -> Curve:
     return Curve(*read_columns(folder, CURVE_COLUMNS))
+
+
+def training_cut(run: Run) -> int:
+    """The steps at which the run's training episodes are cut (`train_max_steps`, else the task's `max_steps`): its
+    rolling length never exceeds it, so a level at or above it is met by the first batch, whatever was learned (a
+    run without messages "reached" 2x an oracle that waits 16 steps for its goal, with 32-step episodes)."""
+    return int(typing.cast("TrainConfig", run.train).training_task.env.max_steps)
 
 
 def first_below(curve: Curve, level: float) -> dict[str, float] | None:
@@ -770,13 +807,14 @@ def summarize(
     for conf in dict.fromkeys(r.configuration for r in runs):
         result = oracle[conf.task_variant]
         level = result.mean_episode_length if result is not None else None
-        records = []
+        records, cut = [], training_cut(next(r for r in runs if r.configuration == conf))
+        timed = {m: m * level for m in THRESHOLDS if level is not None and m * level < cut}  # the levels measured
         for run in (r for r in runs if r.configuration == conf):
             curve, evaluation = curves[run.folder], evaluation_of(run, cfg)
             record = run_record(run, curve, cfg.out, equal_wall, marks, "length_rolling", "episode_length")
             record.update({play: evaluation[play] for play in PLAYS})
             record["reached"] = {
-                threshold_key(m): None if level is None else first_below(curve, m * level) for m in THRESHOLDS
+                threshold_key(m): first_below(curve, timed[m]) if m in timed else None for m in THRESHOLDS
             }
             records.append(record)
         entry: dict[str, Any] = {
@@ -801,6 +839,7 @@ def summarize(
                 "of": len(records),
                 "episodes": interval([h["episodes"] for h in hits]),
                 "wall_s": interval([h["wall_s"] for h in hits]),
+                **({} if m in timed else {"above_cut": cut}),
             }
         entry["runs"] = records
         configurations.append(entry)
@@ -904,12 +943,10 @@ def plot_curves(
     for ax in axes[len(panels) :]:
         ax.set_visible(False)
     axes[0].legend(fontsize=8)
-    env, recipe = cfg.task.env, recipe_phrase(cfg.recipe, cfg.learning)
+    recipe = recipe_phrase(cfg.recipe, cfg.learning)
     sep = ",\n" if "(" in recipe else ", "  # the options a study set, on a line of their own
-    fig.suptitle(
-        f"{recipe}{sep}{env.size}x{env.size} grid, K = {cfg.task.channel.bits}: mean and 95% interval over seeds",
-        fontsize=10,
-    )
+    task = task_title(cfg.task, cfg.vary)
+    fig.suptitle(f"{recipe}{sep if task else ''}{task}: mean and 95% interval over seeds", fontsize=10)
     save_figure(fig, path)
 
 
@@ -961,7 +998,10 @@ def _seed_cell(configuration: dict[str, Any], run: dict[str, Any]) -> str:
     if configuration["oracle_mean_episode_length"] is None:
         return text
     for key, hit in run["reached"].items():
-        text += f"; {key}: " + ("—" if hit is None else f"{hit['episodes']:,} ep, {hit['wall_s']:,.0f} s")
+        untimed = "above_cut" in configuration["reached"][key]
+        text += f"; {key}: " + (
+            "above the cut" if untimed else "—" if hit is None else f"{hit['episodes']:,} ep, {hit['wall_s']:,.0f} s"
+        )
     return text
 
 
@@ -975,15 +1015,23 @@ def cell(value: dict[str, Any] | None, fmt: str) -> str:
 def _reached_cell(reached: dict[str, Any] | None, what: str, fmt: str) -> str:
     if reached is None:
         return "no oracle"
+    if "above_cut" in reached:
+        return f"above the {reached['above_cut']}-step training cut"
     if not reached["seeds"]:
         return f"not reached (0/{reached['of']})"
     return f"{cell(reached[what], fmt)} ({reached['seeds']}/{reached['of']})"
 
 
+def task_sentence(study: dict[str, Any]) -> str:
+    """table.md's words for a study's task: the options it holds, then the values of those it varies (the base value
+    of a varied option, which no run played, is left out)."""
+    held = task_title(TaskConfig.from_dict(study["task"]), study["vary"])
+    return held + "".join(f"; varied {k}: {', '.join(_format(x) for x in v)}" for k, v in study["vary"].items())
+
+
 def table_markdown(summary: dict[str, Any]) -> str:
     """table.md: one row per configuration (and the oracle per variant), mean ± 95% half-interval over seeds."""
     study = summary["study"]
-    env, channel = study["task"]["env"], study["task"]["channel"]
     keys = study["thresholds"]
     header = ["configuration", "seeds", "length (sampled)", "return (sampled)", "length (greedy)", "return (greedy)",
               "length, channel cut at evaluation", *(f"episodes to {k} oracle" for k in keys),
@@ -993,11 +1041,9 @@ def table_markdown(summary: dict[str, Any]) -> str:
         f"# bitcomm compare: {recipe_phrase(study['recipe'], study['learning'])}, "
         f"{runs_phrase(study, summary['configurations'])}",
         "",
-        f"Task: {env['size']}x{env['size']} grid, {env['n_agents']} agents, K = {channel['bits']} bits, delay "
-        f"{channel['delay']}, flip {channel['flip_prob']:g}, drop {channel['drop_prob']:g}"
-        + "".join(f"; varied {k}: {', '.join(_format(x) for x in v)}" for k, v in study["vary"].items())
-        + f". Evaluation: {study['eval_episodes']} episodes of seed {study['eval_seed']}: sampled, greedy, and "
-        "sampled with every message dropped (the channel cut: what the same policy does without communication).",
+        f"Task: {task_sentence(study)}. Evaluation: {study['eval_episodes']} episodes of seed {study['eval_seed']}: "
+        "sampled, greedy, and sampled with every message dropped (the channel cut: what the same policy does without "
+        "communication).",
         "Each cell is the mean ± the 95% half-interval over seeds (Student t); (k/n): the seeds that reached the "
         "level, averaged over those; seconds are training wall time, with runs sharing the machine's cores. The "
         "last column reads every run's rolling mean at the quickest run's training time (equal wall-clock). "
@@ -1023,7 +1069,8 @@ def table_markdown(summary: dict[str, Any]) -> str:
         summary,
         _seed_cell,
         "Length of each run's final policy, sampled (greedy; channel cut), on the evaluation episodes; then the "
-        "training episodes and seconds at which its rolling length first fell below each level (—: never).",
+        "training episodes and seconds at which its rolling length first fell below each level (—: never; above the "
+        "cut: a level no shorter than training's episodes, which every rolling length is below).",
     )
     lines += along_budget_markdown(summary, "length", ".2f")
     return "\n".join(lines) + "\n"
