@@ -349,6 +349,18 @@ def test_a_multidiscrete_action_is_numbered_by_its_combinations() -> None:
     assert actions[0].tolist() == [[1, -1], [0, 5]] and actions[11].tolist() == [[2, 1], [0, 6]]
 
 
+def test_a_box_action_at_its_bounds_is_in_the_space_whatever_its_dtype() -> None:
+    """The learner clips in float32; a float64 bound such as 0.1 has no float32 twin, and the env gets its own."""
+    space = spaces.Box(np.array([-0.1, 0.0]), np.array([0.1, 0.3]), dtype=np.float64)
+    low, high = space.low[None].astype(np.float32), space.high[None].astype(np.float32)  # as EnvLayout.of reads them
+    layout = EnvLayout(
+        ("a",), (1,), 1, 1, 1, False, (2,), low, high, 2, False, np.zeros(1, bool), np.zeros((1, 1), bool)
+    )
+    for sample in ([5.0, 5.0], [-5.0, -5.0]):
+        action = inner_action(space, layout.clip(np.array([sample], np.float32))[0])
+        assert action.dtype == np.float64 and space.contains(action), action
+
+
 def test_rollouts_are_seeded() -> None:
     cfg = config()
     vec = VecEnv(env_factory(cfg), 4)

@@ -410,7 +410,8 @@ def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
     """The inner env's action from the learner's: a Discrete index from 0 shifted by the space's `start`; a
     MultiDiscrete or MultiBinary one unravelled from the index of its combination (C order: the last entry varies
     fastest), shaped, shifted and typed as the space; a flat Box vector (padded to the widest agent's) cut to the
-    space's size, shaped and typed as it."""
+    space's size, shaped and typed as it, and clipped to its own bounds in its dtype (the learner clips in float32,
+    whose nearest bound can lie just outside a float64 one: 0.1 becomes 0.10000000149)."""
     if isinstance(space, spaces.Discrete):
         return int(action) + int(space.start)
     if isinstance(space, (spaces.MultiDiscrete, spaces.MultiBinary)):
@@ -418,4 +419,7 @@ def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
         if isinstance(space, spaces.MultiDiscrete):
             parts = parts + space.start
         return parts.astype(space.dtype)
-    return np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape).astype(space.dtype, copy=False)
+    if not isinstance(space, spaces.Box):  # EnvLayout.of refuses any other action space
+        raise TypeError(f"no learner action for {space}")
+    box = np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape).astype(space.dtype, copy=False)
+    return np.clip(box, space.low, space.high).astype(space.dtype, copy=False)
