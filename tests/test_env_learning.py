@@ -704,10 +704,16 @@ def test_evaluating_a_run_closes_the_envs_it_made(tmp_path: Path) -> None:
     assert CountedEnv.made and all(env.closed for env in CountedEnv.made)
 
 
+def failing_factory() -> None:
+    """A factory whose error spans two lines (as a validation error listing its fields does)."""
+    raise RuntimeError("bad map\nsee the log")
+
+
 @pytest.mark.parametrize(
     ("flags", "names"),
     [
         (["--env", "no_such_module_xyz:make"], "cannot be imported"),
+        (["--env", f"{__name__}:failing_factory"], "failed with them (RuntimeError: bad map see the log)"),
         (["--env", f"{__name__}:NoSuchFactory"], "no callable 'NoSuchFactory'"),
         (["--env", "json:JSONDecoder"], "not a PettingZoo ParallelEnv"),
         (["--env", SPEC, "--env-kwargs", "{bad"], "--env-kwargs"),

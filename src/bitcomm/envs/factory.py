@@ -19,7 +19,7 @@ from typing import Any
 
 from pettingzoo import ParallelEnv
 
-from bitcomm.errors import bad_value
+from bitcomm.errors import bad_value, one_line
 
 TRUSTED_PACKAGES = ("mpe2", "pettingzoo")
 """Env packages whose factories a recorded spec may name without the user saying so: the ones the docs use."""
@@ -75,9 +75,7 @@ def resolve_factory(spec: str) -> Callable[..., Any]:
     try:
         module = importlib.import_module(module_name)
     except Exception as err:  # ImportError, or whatever the module raises while it loads
-        raise bad_value(
-            "env", spec, f"module {module_name!r} cannot be imported ({type(err).__name__}: {err})"
-        ) from None
+        raise bad_value("env", spec, f"module {module_name!r} cannot be imported ({one_line(err)})") from None
     factory = getattr(module, attr, None)
     if not callable(factory):
         raise bad_value("env", spec, f"module {module_name!r} has no callable {attr!r}")
@@ -92,7 +90,7 @@ def make_parallel_env(spec: str, kwargs: dict[str, Any] | None = None) -> Parall
     try:
         env = factory(**(kwargs or {}))
     except Exception as err:  # a bad keyword or value for this env
-        raise bad_value("env_kwargs", kwargs or {}, f"{spec} failed with them ({type(err).__name__}: {err})") from None
+        raise bad_value("env_kwargs", kwargs or {}, f"{spec} failed with them ({one_line(err)})") from None
     if not isinstance(env, ParallelEnv):
         raise bad_value("env", spec, f"returned a {type(env).__name__}, not a PettingZoo ParallelEnv")
     return env
