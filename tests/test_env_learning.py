@@ -11,6 +11,7 @@ import dataclasses
 import errno
 import json
 import os
+import re
 import signal
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from bitcomm.cli import main
-from bitcomm.envs.vector import EnvLayout, VecEnv, inner_action
+from bitcomm.envs.vector import EnvLayout, VecEnv, flat_row, inner_action
 from bitcomm.errors import ConfigError
 from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
 from bitcomm.learn.env_eval import evaluate_env
@@ -640,6 +641,24 @@ def test_an_observation_the_network_cannot_read_is_one_line(
     code = main([*argv, "--episodes", "4", "--hidden", "16", "--out", str(tmp_path / "run"), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err == [f"bitcomm train: error: {line}"], err
+
+
+@pytest.mark.parametrize(
+    ("obs", "value", "outside"),
+    [
+        ("discrete from 1", 0, "0 is not a value of Discrete(3, start=1)"),  # one-hot at index -1: read as 3
+        ("discrete from -1", np.int64(-2), "-2 is not a value of Discrete(3, start=-1)"),
+        ("multidiscrete", np.array([-1, 0]), "-1 is not a value of MultiDiscrete([2 3])"),
+        ("multibinary", np.array([0, 2], np.int8), "2 is not a value of MultiBinary(2)"),  # passed on as a 2
+        ("dict", {"cell": -1, "near": np.zeros(2)}, "-1 is not a value of Discrete(2)"),
+    ],
+)
+def test_a_discrete_observation_outside_its_space_is_one_line(obs: str, value: Any, outside: str) -> None:
+    """gymnasium's flatten reads these as other values without a word; the values inside still pass."""
+    layout = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"obs": obs})), 1).layout
+    with pytest.raises(ConfigError, match=re.escape(f"does not fit {layout.obs_spaces[0]} ({outside})")):
+        flat_row(layout, 0, value)
+    assert flat_row(layout, 0, layout.obs_spaces[0].sample()).size == layout.obs_sizes[0]
 
 
 def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:

@@ -322,14 +322,39 @@ def flat_row(layout: EnvLayout, i: int, observation: Any) -> np.ndarray:
     space, where = layout.obs_spaces[i], f"observations[{layout.agents[i]!r}]['observation']"
     try:
         flat = flat_observation(space, observation)
+        outside = discrete_outside(space, observation)
     except (TypeError, ValueError, IndexError, KeyError, AssertionError) as err:
         raise bad_value(where, type(observation).__name__, f"does not fit {space} ({one_line(err)})") from None
+    if outside is not None:
+        raise bad_value(where, type(observation).__name__, f"does not fit {space} ({outside})")
     if flat.size != layout.obs_sizes[i]:
         raise bad_value(
             f"{where} shape", np.shape(observation),
             f"must fit {space} ({layout.obs_sizes[i]} numbers once flattened, not {flat.size})",
         )  # fmt: skip
     return flat
+
+
+def discrete_outside(space: spaces.Space, observation: Any) -> str | None:
+    """What in an observation gymnasium flattened lies outside its discrete parts, or None: its one-hot of a Discrete
+    indexes from the end for a value below `start` (-1 of Discrete(5) reads as 4) and a MultiBinary entry passes as
+    it is (a 2 is not a bit), so the network would read another value without a word."""
+    if isinstance(space, spaces.Discrete):
+        low, high, x = space.start, space.start + space.n, np.asarray(observation)
+    elif isinstance(space, spaces.MultiDiscrete):
+        low, high, x = space.start, space.start + space.nvec, np.asarray(observation)
+    elif isinstance(space, spaces.MultiBinary):
+        low, high, x = 0, 2, np.asarray(observation)
+    elif isinstance(space, spaces.Dict):
+        return next((w for key, part in space.spaces.items() if (w := discrete_outside(part, observation[key]))), None)
+    elif isinstance(space, spaces.Tuple):
+        return next(
+            (w for part, x in zip(space.spaces, observation, strict=True) if (w := discrete_outside(part, x))), None
+        )
+    else:
+        return None
+    bad = (x < low) | (x >= high) | (x != np.floor(x))
+    return f"{x[bad].flat[0].item()!r} is not a value of {space}" if bad.any() else None
 
 
 def check_finite(layout: EnvLayout, obs: np.ndarray, state: np.ndarray | None = None) -> None:
