@@ -248,6 +248,11 @@ class VecEnv:
             )  # fmt: skip
         agent_rows(L, obs, live, out.obs[b], out.received[b], out.alive[b])
         state = inner_state(env) if L.has_state else None
+        if state is not None and state.size != L.state_size:  # else numpy's "could not broadcast", in a traceback
+            raise bad_value(
+                "state() size", state.size, f"must keep the size it had at reset ({L.state_size} numbers once "
+                "flattened, what the critic reads)",
+            )  # fmt: skip
         out.state[b] = state if state is not None else out.obs[b].ravel()
 
     def reset(self, seeds: Sequence[int] | np.ndarray) -> VecObservation:
