@@ -11,6 +11,7 @@ it is trusted (`check_recorded_env`), as a pickle from an untrusted file is neve
 
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 from collections.abc import Callable
@@ -57,7 +58,10 @@ def check_recorded_env(spec: str, source: Path | str, typed: str | None = None) 
             "env", spec, f"read from {source}: making it imports {module_name!r} and calls {attr!r} with the run's "
             f"env_kwargs, code the run folder chooses; {_how_to_trust(spec, package)}"
         )  # fmt: skip
-    home = str(getattr(resolve_factory(spec), "__module__", None) or "?")
+    factory = resolve_factory(spec)
+    while isinstance(factory, functools.partial):  # its own __module__ is functools: where the code it calls is
+        factory = factory.func
+    home = str(getattr(factory, "__module__", None) or "?")
     if home.split(".")[0] not in trusted:
         raise bad_value(
             "env", spec, f"read from {source}: {attr!r} is defined in {home!r}, outside the trusted packages "
