@@ -363,6 +363,8 @@ def test_a_box_action_at_its_bounds_is_in_the_space_whatever_its_dtype() -> None
     for sample in ([5.0, 5.0], [-5.0, -5.0]):
         action = inner_action(space, layout.clip(np.array([sample], np.float32))[0])
         assert action.dtype == np.float64 and space.contains(action), action
+    scalar = spaces.Box(0, 5, (), np.int64)  # the env gets an array of its shape (), as gymnasium's own sample()
+    assert isinstance(inner_action(scalar, np.array([7.0], np.float32)), np.ndarray)
 
 
 def test_rollouts_are_seeded() -> None:

@@ -452,4 +452,6 @@ def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
     if not isinstance(space, spaces.Box):  # EnvLayout.of refuses any other action space
         raise TypeError(f"no learner action for {space}")
     box = np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape).astype(space.dtype, copy=False)
-    return np.clip(box, space.low, space.high).astype(space.dtype, copy=False)
+    return np.asarray(
+        np.clip(box, space.low, space.high), dtype=space.dtype
+    )  # asarray: a shape () Box's stays an array
