@@ -229,6 +229,12 @@ def test_an_agent_dying_ends_the_run(monkeypatch: pytest.MonkeyPatch) -> None:
     assert len(procs) == 2 and all(p.poll() is not None for p in procs)
 
 
+def test_an_agent_that_fails_says_why() -> None:
+    """Its exit status and last line, not only that it closed its connection (it had not exited yet)."""
+    with pytest.raises(DeployError, match=r"^agent 0 exited with status 2: .*cannot load RUN 'no/such/run'"):
+        run_deploy(PolicySource("run", "no/such/run"), TINY, 2, seed=0, timeout_s=60)
+
+
 def _children(pid: int) -> list[int]:
     path = Path(f"/proc/{pid}/task/{pid}/children")
     return [int(x) for x in path.read_text().split()] if path.exists() else []

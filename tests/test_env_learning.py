@@ -11,6 +11,7 @@ import dataclasses
 import errno
 import json
 import os
+import re
 import signal
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from bitcomm.cli import main
-from bitcomm.envs.vector import EnvLayout, VecEnv, inner_action
+from bitcomm.envs.vector import EnvLayout, VecEnv, flat_row, inner_action
 from bitcomm.errors import ConfigError
 from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
 from bitcomm.learn.env_eval import evaluate_env
@@ -183,15 +184,18 @@ class OddRewardEnv(SignalEnv):
 class OddObservationEnv(SignalEnv):
     """SignalEnv whose listener's observation at its second step is `odd`: "nan" or "inf" in one number,
     "longer" (4 numbers for a space of 3), "scalar" (one number, which numpy would broadcast over 3), "missing"
-    (no observation for it while it is listed), or "state nan" (a `state_space` whose `state()` gives NaN)."""
+    (no observation for it while it is listed), "state nan" (a `state_space` whose `state()` gives NaN) or "state
+    longer" (a `state()` of 3 numbers after 2)."""
 
     def __init__(self, odd: str = "nan") -> None:
         super().__init__(steps=3)
         self.odd = odd
-        if odd == "state nan":
+        if odd.startswith("state"):
             self.state_space = spaces.Box(0, 1, (2,), np.float32)
 
     def state(self) -> np.ndarray:
+        if self.odd == "state longer":
+            return np.full(3 if self.t >= 1 else 2, 0.5, np.float32)
         return np.array([0.5, np.nan if self.t >= 1 else 0.5], np.float32)
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
@@ -347,6 +351,20 @@ def test_a_multidiscrete_action_is_numbered_by_its_combinations() -> None:
     actions = [inner_action(space, np.int64(i)) for i in range(12)]
     assert all(space.contains(x) for x in actions) and len({x.tobytes() for x in actions}) == 12
     assert actions[0].tolist() == [[1, -1], [0, 5]] and actions[11].tolist() == [[2, 1], [0, 6]]
+
+
+def test_a_box_action_at_its_bounds_is_in_the_space_whatever_its_dtype() -> None:
+    """The learner clips in float32; a float64 bound such as 0.1 has no float32 twin, and the env gets its own."""
+    space = spaces.Box(np.array([-0.1, 0.0]), np.array([0.1, 0.3]), dtype=np.float64)
+    low, high = space.low[None].astype(np.float32), space.high[None].astype(np.float32)  # as EnvLayout.of reads them
+    layout = EnvLayout(
+        ("a",), (1,), 1, 1, 1, False, (2,), low, high, 2, False, np.zeros(1, bool), np.zeros((1, 1), bool)
+    )
+    for sample in ([5.0, 5.0], [-5.0, -5.0]):
+        action = inner_action(space, layout.clip(np.array([sample], np.float32))[0])
+        assert action.dtype == np.float64 and space.contains(action), action
+    scalar = spaces.Box(0, 5, (), np.int64)  # the env gets an array of its shape (), as gymnasium's own sample()
+    assert isinstance(inner_action(scalar, np.array([7.0], np.float32)), np.ndarray)
 
 
 def test_rollouts_are_seeded() -> None:
@@ -609,6 +627,8 @@ def test_a_reward_missing_or_not_a_scalar_is_one_line(
         ("inf", "invalid observations['listener']['observation']=inf: the env's observations must be finite numbers "
                 "(as float32; the network cannot read NaN or infinity)"),
         ("state nan", "invalid state()=nan: the env's state must be finite numbers (as float32)"),
+        ("state longer", "invalid state() size=3: must keep the size it had at reset (2 numbers once flattened, "
+                         "what the critic reads)"),
         ("longer", "invalid observations['listener']['observation'] shape=(4,): must fit Box(0.0, 1.0, (3,), "
                    "float32) (3 numbers once flattened, not 4)"),
         ("scalar", "invalid observations['listener']['observation'] shape=(): must fit Box(0.0, 1.0, (3,), float32) "
@@ -628,6 +648,24 @@ def test_an_observation_the_network_cannot_read_is_one_line(
     code = main([*argv, "--episodes", "4", "--hidden", "16", "--out", str(tmp_path / "run"), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err == [f"bitcomm train: error: {line}"], err
+
+
+@pytest.mark.parametrize(
+    ("obs", "value", "outside"),
+    [
+        ("discrete from 1", 0, "0 is not a value of Discrete(3, start=1)"),  # one-hot at index -1: read as 3
+        ("discrete from -1", np.int64(-2), "-2 is not a value of Discrete(3, start=-1)"),
+        ("multidiscrete", np.array([-1, 0]), "-1 is not a value of MultiDiscrete([2 3])"),
+        ("multibinary", np.array([0, 2], np.int8), "2 is not a value of MultiBinary(2)"),  # passed on as a 2
+        ("dict", {"cell": -1, "near": np.zeros(2)}, "-1 is not a value of Discrete(2)"),
+    ],
+)
+def test_a_discrete_observation_outside_its_space_is_one_line(obs: str, value: Any, outside: str) -> None:
+    """gymnasium's flatten reads these as other values without a word; the values inside still pass."""
+    layout = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"obs": obs})), 1).layout
+    with pytest.raises(ConfigError, match=re.escape(f"does not fit {layout.obs_spaces[0]} ({outside})")):
+        flat_row(layout, 0, value)
+    assert flat_row(layout, 0, layout.obs_spaces[0].sample()).size == layout.obs_sizes[0]
 
 
 def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:
@@ -692,10 +730,16 @@ def test_evaluating_a_run_closes_the_envs_it_made(tmp_path: Path) -> None:
     assert CountedEnv.made and all(env.closed for env in CountedEnv.made)
 
 
+def failing_factory() -> None:
+    """A factory whose error spans two lines (as a validation error listing its fields does)."""
+    raise RuntimeError("bad map\nsee the log")
+
+
 @pytest.mark.parametrize(
     ("flags", "names"),
     [
         (["--env", "no_such_module_xyz:make"], "cannot be imported"),
+        (["--env", f"{__name__}:failing_factory"], "failed with them (RuntimeError: bad map see the log)"),
         (["--env", f"{__name__}:NoSuchFactory"], "no callable 'NoSuchFactory'"),
         (["--env", "json:JSONDecoder"], "not a PettingZoo ParallelEnv"),
         (["--env", SPEC, "--env-kwargs", "{bad"], "--env-kwargs"),

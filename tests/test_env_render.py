@@ -131,6 +131,9 @@ def test_text_shows_the_bits_sent_and_received_and_the_drops() -> None:
     assert step_lines(record._replace(action_spaces=spaces_of), 0)[2].startswith("listener  action [1 2]  |")
     gone = record._replace(alive=np.array([[True, True], [True, True], [False, True]]))
     assert step_lines(gone, 2)[1] == "speaker  gone"
+    late = record._replace(alive=np.array([[False, True], [True, True], [True, True]]))  # the speaker joins at step 1
+    assert step_lines(late, 0)[1] == "speaker  not here yet"
+    assert step_lines(late, 1)[2].endswith("<-speaker (not here yet)")  # what it sent at step 0: nothing
 
 
 def test_recorded_bits_are_what_the_channel_carried(run: Path) -> None:

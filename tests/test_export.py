@@ -212,11 +212,14 @@ def test_cli_exports_a_run_folder(exported: tuple[Path, Path], tmp_path: Path, c
         np.testing.assert_array_equal(a, b)
 
 
-def test_deploy_runs_the_exported_policy(exported: tuple[Path, Path]) -> None:
+@pytest.mark.parametrize("policy", ["onnx", "run"])
+def test_deploy_runs_the_exported_policy(exported: tuple[Path, Path], policy: str) -> None:
+    """As exported, or from its run folder: each agent process then samples from a torch stream of its own."""
     from bitcomm.policies.evaluation import evaluate_checkpoint
 
     run, out = exported
-    cmd = [sys.executable, "-m", "bitcomm.cli", "deploy", "--onnx", str(out), "--greedy", "--episodes", "12",
+    source = ["--onnx", str(out)] if policy == "onnx" else [str(run)]
+    cmd = [sys.executable, "-m", "bitcomm.cli", "deploy", *source, "--greedy", "--episodes", "12",
            "--seed", "2", "--deadline-ms", "200", "--json", "--timeout", "60"]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=90)
     assert done.returncode == 0, done.stderr

@@ -6,7 +6,9 @@ instead of crashing. Each case runs the real CLI in-process (`bitcomm.cli.main`)
 
 from __future__ import annotations
 
+import functools
 import json
+import os
 import shutil
 import socket
 import time
@@ -347,6 +349,20 @@ def test_a_trusted_package_vouches_only_for_factories_it_defines() -> None:
     check_recorded_env(MPE, "config.json")
     with pytest.raises(ConfigError, match="'defaultdict' is defined in 'collections', outside the trusted packages"):
         check_recorded_env("pettingzoo.utils.conversions:defaultdict", "config.json")
+
+
+speaker_listener_partial = functools.partial(speaker_listener)  # a user's factory with its arguments bound
+system_partial = functools.partial(os.system)
+
+
+def test_a_trusted_packages_partial_is_judged_by_the_function_it_binds(monkeypatch) -> None:
+    """A partial object's own module is functools: the function it calls says where its code is, as for a function."""
+    from bitcomm.envs.factory import check_recorded_env
+
+    monkeypatch.setenv("BITCOMM_TRUST_ENVS", __name__)
+    check_recorded_env(f"{__name__}:speaker_listener_partial", "config.json")
+    with pytest.raises(ConfigError, match=f"'system_partial' is defined in '{os.system.__module__}', outside the"):
+        check_recorded_env(f"{__name__}:system_partial", "config.json")
 
 
 def test_bitcomm_trust_envs_lets_a_users_env_package_through(env_run: Path, monkeypatch, capsys) -> None:

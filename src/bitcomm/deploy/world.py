@@ -93,6 +93,9 @@ def place_episode(core: GoalExchangeCore, start: np.ndarray, goal: np.ndarray) -
     core.begin(np.zeros(1, dtype=np.int64), start[None], goal[None])
 
 
+EXIT_WAIT_S = 3.0
+"""How long an agent that closed its connection is given to exit, so that the error names its status and last line."""
+
 Fits = Callable[[dict[str, Any]], bool]
 """What a control reply must satisfy besides its type."""
 
@@ -166,12 +169,21 @@ class _Agents:
                 self.malformed += 1
                 conn.close()  # not one of ours
 
+    def gone(self, i: int) -> DeployError:
+        """Agent i closed its connection: it is most likely exiting (on an error it printed), so its status and
+        last line, which say why, are waited for a moment (an agent that loaded torch takes a second to exit)."""
+        try:
+            self.procs[i].wait(timeout=max(0.0, min(EXIT_WAIT_S, self.end - time.monotonic())))
+        except subprocess.TimeoutExpired:
+            pass
+        self.check_alive()
+        return DeployError(f"agent {i} closed its connection")
+
     def send(self, i: int, obj: dict[str, Any]) -> None:
         try:
             self._conn(i).send(obj)
         except PeerGone:
-            self.check_alive()
-            raise DeployError(f"agent {i} closed its connection") from None
+            raise self.gone(i) from None
 
     def recv(self, i: int, within: float, kind: str, fits: Fits | None = None) -> dict[str, Any]:
         """The next line from agent i of type `kind` (and that `fits`); other lines are ignored and counted."""
@@ -183,9 +195,7 @@ class _Agents:
                 self.malformed += 1
                 continue
             except PeerGone:
-                time.sleep(0.05)  # let a dying process be reaped, to report its status
-                self.check_alive()
-                raise DeployError(f"agent {i} closed its connection") from None
+                raise self.gone(i) from None
             except TimeoutError:
                 self.check_alive()
                 self.deadline(0.0)  # the wait was cut by the run's time bound: say that, not that the agent hung

@@ -11,6 +11,7 @@ it is trusted (`check_recorded_env`), as a pickle from an untrusted file is neve
 
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 from collections.abc import Callable
@@ -19,7 +20,7 @@ from typing import Any
 
 from pettingzoo import ParallelEnv
 
-from bitcomm.errors import bad_value
+from bitcomm.errors import bad_value, one_line
 
 TRUSTED_PACKAGES = ("mpe2", "pettingzoo")
 """Env packages whose factories a recorded spec may name without the user saying so: the ones the docs use."""
@@ -57,7 +58,10 @@ def check_recorded_env(spec: str, source: Path | str, typed: str | None = None) 
             "env", spec, f"read from {source}: making it imports {module_name!r} and calls {attr!r} with the run's "
             f"env_kwargs, code the run folder chooses; {_how_to_trust(spec, package)}"
         )  # fmt: skip
-    home = str(getattr(resolve_factory(spec), "__module__", None) or "?")
+    factory = resolve_factory(spec)
+    while isinstance(factory, functools.partial):  # its own __module__ is functools: where the code it calls is
+        factory = factory.func
+    home = str(getattr(factory, "__module__", None) or "?")
     if home.split(".")[0] not in trusted:
         raise bad_value(
             "env", spec, f"read from {source}: {attr!r} is defined in {home!r}, outside the trusted packages "
@@ -75,9 +79,7 @@ def resolve_factory(spec: str) -> Callable[..., Any]:
     try:
         module = importlib.import_module(module_name)
     except Exception as err:  # ImportError, or whatever the module raises while it loads
-        raise bad_value(
-            "env", spec, f"module {module_name!r} cannot be imported ({type(err).__name__}: {err})"
-        ) from None
+        raise bad_value("env", spec, f"module {module_name!r} cannot be imported ({one_line(err)})") from None
     factory = getattr(module, attr, None)
     if not callable(factory):
         raise bad_value("env", spec, f"module {module_name!r} has no callable {attr!r}")
@@ -92,7 +94,7 @@ def make_parallel_env(spec: str, kwargs: dict[str, Any] | None = None) -> Parall
     try:
         env = factory(**(kwargs or {}))
     except Exception as err:  # a bad keyword or value for this env
-        raise bad_value("env_kwargs", kwargs or {}, f"{spec} failed with them ({type(err).__name__}: {err})") from None
+        raise bad_value("env_kwargs", kwargs or {}, f"{spec} failed with them ({one_line(err)})") from None
     if not isinstance(env, ParallelEnv):
         raise bad_value("env", spec, f"returned a {type(env).__name__}, not a PettingZoo ParallelEnv")
     return env

@@ -248,6 +248,11 @@ class VecEnv:
             )  # fmt: skip
         agent_rows(L, obs, live, out.obs[b], out.received[b], out.alive[b])
         state = inner_state(env) if L.has_state else None
+        if state is not None and state.size != L.state_size:  # else numpy's "could not broadcast", in a traceback
+            raise bad_value(
+                "state() size", state.size, f"must keep the size it had at reset ({L.state_size} numbers once "
+                "flattened, what the critic reads)",
+            )  # fmt: skip
         out.state[b] = state if state is not None else out.obs[b].ravel()
 
     def reset(self, seeds: Sequence[int] | np.ndarray) -> VecObservation:
@@ -322,14 +327,39 @@ def flat_row(layout: EnvLayout, i: int, observation: Any) -> np.ndarray:
     space, where = layout.obs_spaces[i], f"observations[{layout.agents[i]!r}]['observation']"
     try:
         flat = flat_observation(space, observation)
+        outside = discrete_outside(space, observation)
     except (TypeError, ValueError, IndexError, KeyError, AssertionError) as err:
         raise bad_value(where, type(observation).__name__, f"does not fit {space} ({one_line(err)})") from None
+    if outside is not None:
+        raise bad_value(where, type(observation).__name__, f"does not fit {space} ({outside})")
     if flat.size != layout.obs_sizes[i]:
         raise bad_value(
             f"{where} shape", np.shape(observation),
             f"must fit {space} ({layout.obs_sizes[i]} numbers once flattened, not {flat.size})",
         )  # fmt: skip
     return flat
+
+
+def discrete_outside(space: spaces.Space, observation: Any) -> str | None:
+    """What in an observation gymnasium flattened lies outside its discrete parts, or None: its one-hot of a Discrete
+    indexes from the end for a value below `start` (-1 of Discrete(5) reads as 4) and a MultiBinary entry passes as
+    it is (a 2 is not a bit), so the network would read another value without a word."""
+    if isinstance(space, spaces.Discrete):
+        low, high, x = space.start, space.start + space.n, np.asarray(observation)
+    elif isinstance(space, spaces.MultiDiscrete):
+        low, high, x = space.start, space.start + space.nvec, np.asarray(observation)
+    elif isinstance(space, spaces.MultiBinary):
+        low, high, x = 0, 2, np.asarray(observation)
+    elif isinstance(space, spaces.Dict):
+        return next((w for key, part in space.spaces.items() if (w := discrete_outside(part, observation[key]))), None)
+    elif isinstance(space, spaces.Tuple):
+        return next(
+            (w for part, x in zip(space.spaces, observation, strict=True) if (w := discrete_outside(part, x))), None
+        )
+    else:
+        return None
+    bad = (x < low) | (x >= high) | (x != np.floor(x))
+    return f"{x[bad].flat[0].item()!r} is not a value of {space}" if bad.any() else None
 
 
 def check_finite(layout: EnvLayout, obs: np.ndarray, state: np.ndarray | None = None) -> None:
@@ -410,7 +440,8 @@ def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
     """The inner env's action from the learner's: a Discrete index from 0 shifted by the space's `start`; a
     MultiDiscrete or MultiBinary one unravelled from the index of its combination (C order: the last entry varies
     fastest), shaped, shifted and typed as the space; a flat Box vector (padded to the widest agent's) cut to the
-    space's size, shaped and typed as it."""
+    space's size, shaped and typed as it, and clipped to its own bounds in its dtype (the learner clips in float32,
+    whose nearest bound can lie just outside a float64 one: 0.1 becomes 0.10000000149)."""
     if isinstance(space, spaces.Discrete):
         return int(action) + int(space.start)
     if isinstance(space, (spaces.MultiDiscrete, spaces.MultiBinary)):
@@ -418,4 +449,9 @@ def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
         if isinstance(space, spaces.MultiDiscrete):
             parts = parts + space.start
         return parts.astype(space.dtype)
-    return np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape).astype(space.dtype, copy=False)
+    if not isinstance(space, spaces.Box):  # EnvLayout.of refuses any other action space
+        raise TypeError(f"no learner action for {space}")
+    box = np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape).astype(space.dtype, copy=False)
+    return np.asarray(
+        np.clip(box, space.low, space.high), dtype=space.dtype
+    )  # asarray: a shape () Box's stays an array

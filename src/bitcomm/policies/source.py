@@ -103,9 +103,10 @@ def resolve_task(args: argparse.Namespace, base: TaskConfig, label: str = "RUN",
 
 
 def torch_seed(seed: int | np.random.SeedSequence) -> int:
-    """A torch generator's seed for `seed`: an int as it is, a `SeedSequence` (a deployed agent's) drawn from."""
+    """A torch generator's seed for `seed`: an int as it is, a `SeedSequence` (a deployed agent's) drawn from, in
+    the range `Controller` takes (`bitcomm.config.check_seed`: 32 bits)."""
     if isinstance(seed, np.random.SeedSequence):
-        return int(seed.generate_state(1, np.uint64)[0])
+        return int(seed.generate_state(1, np.uint32)[0])
     return int(seed)
 
 

@@ -114,6 +114,11 @@ def _action(record: EnvEpisodeRecord, t: int, i: int) -> str:
     return "[" + " ".join(f"{x:+.2f}" for x in record.actions[t, i, : record.action_sizes[i]]) + "]"
 
 
+def _absent(record: EnvEpisodeRecord, t: int, i: int) -> str:
+    """Why agent i is not in the episode at step t: it left, or (PettingZoo lets an env add agents) it has not come."""
+    return "gone" if record.alive[:t, i].any() else "not here yet"
+
+
 def _heard(record: EnvEpisodeRecord, t: int, i: int) -> str:
     """The bits agent i read at step t from each sender it hears, with why a slot holds zeros."""
     out = []
@@ -127,7 +132,7 @@ def _heard(record: EnvEpisodeRecord, t: int, i: int) -> str:
         elif record.dropped[s, j]:
             note = " (dropped)"
         elif not record.alive[s, j]:
-            note = " (gone)"
+            note = f" ({_absent(record, s, j)})"
         out.append(f"{bit_string(record.received[t, i, k])}<-{record.agents[j]}{note}")
     return " ".join(out) or "-"
 
@@ -139,7 +144,7 @@ def step_lines(record: EnvEpisodeRecord, t: int) -> list[str]:
     lines = [header]
     for i, name in enumerate(record.agents):
         if not record.alive[t, i]:
-            lines.append(f"{name}  gone")
+            lines.append(f"{name}  {_absent(record, t, i)}")
             continue
         sent = record.sent[t, i]
         drop = " (heard by no one)" if i not in record.slot_senders else " DROPPED" if record.dropped[t, i] else ""
