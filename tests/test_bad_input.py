@@ -121,6 +121,7 @@ KNOWN: list[tuple[list[str], str]] = [
     (["train", "--messages", "onehot", "--bits", "30"], "bits"),  # 2^30 one-hot words
     (["train", "--messages", "onehot", "--bits", "24", "--size", "4"], "bits"),
     (["train", "--num-envs", "100000000"], "num-envs"),
+    (["train", "--num-envs", "2", "--minibatches", "3"], "minibatches"),  # typed: more minibatches than episodes
     (["train", "--hidden", "-8"], "hidden"),
     (["train", "--hidden", "100000000"], "hidden"),
     (["train", "--epochs", "100000000"], "epochs"),
@@ -418,3 +419,19 @@ def test_a_one_hot_policy_too_wide_to_play_that_many_episodes_is_refused(
         assert code == 2 and len(lines) == 1, (command, lines)
         assert f"invalid {flag}=4096" in lines[0] and "one-hot messages over 2^10 words" in lines[0], lines
     assert not (tmp_path / "t").exists()  # refused before training
+
+
+def test_a_small_batch_takes_the_recipes_minibatches_down_with_it() -> None:
+    """`train --num-envs 2` was refused as `invalid minibatches=4`, a flag the user never typed: the recipe's 4
+    minibatches follow a batch of fewer episodes (a typed `--minibatches` above it is still refused, above)."""
+    from bitcomm.cli import build_parser
+    from bitcomm.commands.env_train import env_config_from_args
+    from bitcomm.learn.config import make_train_config
+
+    assert make_train_config("reinforced", num_envs=2).minibatches == 2
+    assert make_train_config("reinforced", num_envs=64).minibatches == 4
+    assert make_train_config("reinforced", num_envs=2, minibatches=1).minibatches == 1
+    args = build_parser().parse_args(
+        ["train", "--env", "mpe2.simple_speaker_listener_v4:parallel_env", "--num-envs", "2"]
+    )
+    assert env_config_from_args(args).minibatches == 2

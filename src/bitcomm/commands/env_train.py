@@ -79,8 +79,10 @@ def env_config_from_args(args: argparse.Namespace) -> EnvTrainConfig:
     for name in ("episodes", "obs_norm", "env_workers", "estimator", "messages", "seed"):
         if getattr(args, name, None) is not None:
             extra[name] = getattr(args, name)
-    return EnvTrainConfig(env=args.env, env_kwargs=args.env_kwargs or {}, channel=channel, **extra,
-                          **env_overrides(args))  # fmt: skip
+    learning = env_overrides(args)
+    if "minibatches" not in learning and "num_envs" in learning:  # the default follows a smaller batch, as the grid's
+        learning["minibatches"] = min(EnvTrainConfig.minibatches, learning["num_envs"])
+    return EnvTrainConfig(env=args.env, env_kwargs=args.env_kwargs or {}, channel=channel, **extra, **learning)
 
 
 def resumed_env_config(args: argparse.Namespace, out: Path) -> EnvTrainConfig:

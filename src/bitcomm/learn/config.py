@@ -487,6 +487,10 @@ def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = No
     check_instance("task", task, TaskConfig, TASK_ALLOWED)
     values = recipe_values(recipe, task, overrides.get("message_reads"))
     values.update({k: v for k, v in overrides.items() if v is not None})
+    if overrides.get("minibatches") is None and isinstance(values["num_envs"], int):  # a batch splits into as many
+        values["minibatches"] = min(
+            values["minibatches"], values["num_envs"]
+        )  # minibatches at most: the recipe's follow
     if values.get("coords") and values.get("encoder", ModelConfig.encoder) != "conv":
         if overrides.get("coords") is not None:  # typed: it would do nothing (a recipe's value just stands down)
             raise bad_value(
