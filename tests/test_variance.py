@@ -194,6 +194,20 @@ def test_cli_defaults_are_the_config_defaults() -> None:
     assert variance_config(build_parser().parse_args(["variance", "RUN"])) == VarianceConfig()
 
 
+def test_every_plateau_the_flag_takes_the_config_takes() -> None:
+    """`--plateau` takes [0, 1] and said so, then `--plateau 1` was refused as "must be in [0, 1)" (1: stop at the
+    first window the loss is compared on)."""
+    from bitcomm.cli import build_parser
+    from bitcomm.commands.variance import variance_config
+
+    for value in ("0", "0.5", "1"):
+        assert variance_config(build_parser().parse_args(["variance", "RUN", "--plateau", value])).plateau == float(
+            value
+        )
+    with pytest.raises(ConfigError, match=r"invalid plateau=1.5: must be in \[0, 1\]"):
+        VarianceConfig(plateau=1.5)
+
+
 def test_a_checkpoint_named_twice_or_of_another_task_is_one_line(
     run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:

@@ -74,8 +74,8 @@ class VarianceConfig:
             low = 2 if name == "batches" else 0 if name == "fit_batches" else 1
             if not isinstance(value, int) or value < low:
                 raise bad_value(name.replace("_", "-"), value, f"must be an integer >= {low}")
-        if not 0 <= self.plateau < 1:
-            raise bad_value("plateau", self.plateau, "must be in [0, 1)")
+        if not 0 <= self.plateau <= 1:  # 1: stop at the first window, however the loss falls (as --plateau takes)
+            raise bad_value("plateau", self.plateau, "must be in [0, 1]")
 
 
 PLATEAU_WINDOW = 5
