@@ -338,6 +338,28 @@ def test_the_figure_names_the_task_less_what_its_panels_vary() -> None:
     assert task_sentence(study) == "4x4 grid, K = 4, delay 2, flip 0.05, drop 0; varied agents: 3, 4"
 
 
+def test_the_legend_names_the_oracle_that_only_a_later_panel_draws(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """curves.png's legend was the first panel's: a study varying bits=1,4 on a 3x3 grid (1 bit cannot name a cell, so
+    that panel has no oracle) drew the oracle's dashed line in the second panel and never named it."""
+    from types import SimpleNamespace
+
+    from bitcomm.studies import compare
+
+    cfg = CompareConfig(out=tmp_path, techniques=("improved-bitwise",), seeds=1, task=TaskConfig(EnvConfig(size=3)),
+                        vary={"bits": (1, 4)})  # fmt: skip
+    runs = compare.plan(cfg)
+    steps = np.array([16.0, 32.0])
+    curves = {r.folder: Curve(steps, steps / 16, np.array([20.0, 9.0]), steps, -steps) for r in runs}
+    oracle = {"bits=1": None, "bits=4": SimpleNamespace(mean_episode_length=3.0)}
+    drawn: list[Any] = []
+    monkeypatch.setattr(compare, "save_figure", lambda fig, path: drawn.append(fig))
+    compare.plot_curves(runs, curves, cfg, oracle, tmp_path / "curves.png")  # type: ignore[arg-type]
+    legend = drawn[0].axes[0].get_legend()
+    assert [t.get_text() for t in legend.get_texts()] == ["improved-bitwise (1 seed)", "oracle"]
+
+
 def test_time_to_a_level_is_the_first_batch_below_it() -> None:
     steps = np.array([16.0, 32.0, 48.0])
     curve = Curve(steps, np.array([1.0, 2.5, 4.0]), np.array([20.0, 9.0, 5.0]), steps, -steps)

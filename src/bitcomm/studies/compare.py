@@ -942,7 +942,11 @@ def plot_curves(
         axes[0].set_yscale("log")  # shared by every panel
     for ax in axes[len(panels) :]:
         ax.set_visible(False)
-    axes[0].legend(fontsize=8)
+    labelled: dict[str, Any] = {}  # every panel's lines, once: the first panel may lack the oracle (too few bits)
+    for ax in axes[: len(panels)]:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            labelled.setdefault(label, handle)
+    axes[0].legend(list(labelled.values()), list(labelled), fontsize=8)
     recipe = recipe_phrase(cfg.recipe, cfg.learning)
     sep = ",\n" if "(" in recipe else ", "  # the options a study set, on a line of their own
     task = task_title(cfg.task, cfg.vary)
