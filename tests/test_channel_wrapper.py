@@ -437,6 +437,19 @@ BAD: dict[str, tuple[Callable[[], Any], str]] = {
     "matrix self": (lambda: BitChannel(Toy(), topology=np.eye(3, dtype=bool)), "[0, 0] True"),
     "fixed unknown": (lambda: BitChannel(Toy(), fixed_actions={"z": 0}), "fixed_actions='z'"),
     "fixed outside": (lambda: BitChannel(Toy(), fixed_actions={"a": 3}), "fixed_actions['a']=3"),
+    # an unbounded Box contains inf, and 1e39 overflowed float32 to it: the env was sent inf
+    "fixed beyond float32": (
+        lambda: BitChannel(
+            Toy(action_space=spaces.Box(-np.inf, np.inf, (2,), np.float32)), fixed_actions={"a": [0.5, 1e39]}
+        ),
+        "fixed_actions['a']=[0.5, 1e+39]: must be a finite action of Box(",
+    ),  # fmt: skip
+    "fixed inf": (
+        lambda: BitChannel(
+            Toy(action_space=spaces.Box(-np.inf, np.inf, (1,), np.float32)), fixed_actions={"a": [float("inf")]}
+        ),
+        "must be a finite action",
+    ),  # fmt: skip
     "reset seed -1": (lambda: BitChannel(Toy()).reset(seed=-1), "seed=-1"),  # was numpy's, naming no seed
     "reset seed text": (lambda: BitChannel(Toy()).reset(seed="7"), "seed='7'"),  # type: ignore[arg-type]
 }

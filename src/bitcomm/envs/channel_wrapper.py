@@ -286,9 +286,12 @@ def _check_fixed(fixed: Mapping[str, Any] | None, action_spaces: dict[AgentID, s
         action: Any = value
         if isinstance(space, spaces.Box):
             try:
-                action = np.asarray(value, dtype=space.dtype)
+                with np.errstate(over="ignore"):  # a number beyond the dtype becomes inf, refused below
+                    action = np.asarray(value, dtype=space.dtype)
             except (TypeError, ValueError):
                 action = None
+            if action is not None and not np.isfinite(action).all():  # an unbounded Box contains inf
+                raise bad_value(f"fixed_actions[{agent!r}]", value, f"must be a finite action of {space}")
         elif isinstance(value, (int, np.integer)) and not isinstance(value, bool):
             action = int(value)
         if action is None or isinstance(value, bool) or not space.contains(action):
