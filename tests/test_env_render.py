@@ -194,3 +194,21 @@ def test_mpe2_speaker_listener(tmp_path: Path) -> None:
     assert main(["render", str(run), "--out", str(gif)]) == 0
     with Image.open(gif) as im:
         assert im.n_frames == 25 and im.size[0] >= 700
+
+
+def test_a_float_picture_in_0_1_is_drawn_in_its_colours_not_black() -> None:
+    """An env whose `render()` gives floats in [0, 1] (matplotlib's convention) was cast to uint8 as it was: every
+    pixel 0 or 1, a black frame. It is scaled to [0, 255]; a float picture already in [0, 255] is only rounded."""
+    from bitcomm.studies.env_render import picture
+
+    class Painted:
+        def __init__(self, image: np.ndarray) -> None:
+            self.image = image
+
+        def render(self) -> np.ndarray:
+            return self.image
+
+    grey = np.full((2, 3, 3), 0.5)
+    assert picture(Painted(grey), "x").tolist() == np.full((2, 3, 3), 128, np.uint8).tolist()
+    assert picture(Painted(grey * 255 + 0.4), "x").max() == 128
+    assert picture(Painted(np.full((2, 3, 3), 200, np.uint8)), "x").max() == 200

@@ -55,7 +55,8 @@ class EnvEpisodeRecord(NamedTuple):
 
 
 def picture(env: Any, spec: str) -> np.ndarray:
-    """`env.render()` as an (H, W, 3) uint8 array, or one error line naming the env and what is needed."""
+    """`env.render()` as an (H, W, 3) uint8 array (a float one in [0, 1] scaled to [0, 255]), or one error line naming
+    the env and what is needed."""
     try:
         image = env.render()
     except Exception as err:  # PettingZoo's default render raises NotImplementedError
@@ -63,7 +64,9 @@ def picture(env: Any, spec: str) -> np.ndarray:
     if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or 0 in image.shape:
         got = f"an array of shape {image.shape}" if isinstance(image, np.ndarray) else repr(image)[:40]
         raise bad_value("env", spec, f"cannot be drawn: render() returned {got}; {NEEDS}")
-    return np.ascontiguousarray(image, dtype=np.uint8)
+    if image.dtype.kind == "f" and np.nanmax(image) <= 1.0:  # matplotlib's convention; cast, every pixel was 0 or 1
+        image = np.nan_to_num(image).clip(0.0, 1.0) * 255.0
+    return np.ascontiguousarray(np.rint(image) if image.dtype.kind == "f" else image, dtype=np.uint8)
 
 
 def record_env_episode(
