@@ -367,6 +367,14 @@ def test_a_box_action_at_its_bounds_is_in_the_space_whatever_its_dtype() -> None
     assert isinstance(inner_action(scalar, np.array([7.0], np.float32)), np.ndarray)
 
 
+def test_an_integer_box_gets_the_nearest_integer_of_the_learners_action() -> None:
+    """A Gaussian's sample reached an integer Box cast toward zero (2.7 -> 2, -0.6 -> 0): every action but the
+    nearest, and half of the range for small values. It is rounded, then clipped to the space."""
+    space = spaces.Box(-3, 3, (4,), np.int64)
+    action = inner_action(space, np.array([2.7, -0.6, -2.5, 9.0], np.float32))
+    assert action.dtype == np.int64 and action.tolist() == [3, -1, -2, 3] and space.contains(action)
+
+
 def test_rollouts_are_seeded() -> None:
     cfg = config()
     vec = VecEnv(env_factory(cfg), 4)

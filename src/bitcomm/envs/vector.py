@@ -440,8 +440,9 @@ def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
     """The inner env's action from the learner's: a Discrete index from 0 shifted by the space's `start`; a
     MultiDiscrete or MultiBinary one unravelled from the index of its combination (C order: the last entry varies
     fastest), shaped, shifted and typed as the space; a flat Box vector (padded to the widest agent's) cut to the
-    space's size, shaped and typed as it, and clipped to its own bounds in its dtype (the learner clips in float32,
-    whose nearest bound can lie just outside a float64 one: 0.1 becomes 0.10000000149)."""
+    space's size, shaped and typed as it (an integer Box's rounded to the nearest), and clipped to its own bounds in its
+    dtype (the learner clips in float32, whose nearest bound can lie just outside a float64 one: 0.1 becomes
+    0.10000000149)."""
     if isinstance(space, spaces.Discrete):
         return int(action) + int(space.start)
     if isinstance(space, (spaces.MultiDiscrete, spaces.MultiBinary)):
@@ -451,7 +452,10 @@ def inner_action(space: spaces.Space, action: np.ndarray) -> Any:
         return parts.astype(space.dtype)
     if not isinstance(space, spaces.Box):  # EnvLayout.of refuses any other action space
         raise TypeError(f"no learner action for {space}")
-    box = np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape).astype(space.dtype, copy=False)
+    box = np.asarray(action[: spaces.flatdim(space)], np.float32).reshape(space.shape)
+    if np.issubdtype(space.dtype, np.integer):  # the nearest integer: a cast cut 2.7 to 2 and -0.6 to 0
+        box = np.rint(box)
+    box = box.astype(space.dtype, copy=False)
     return np.asarray(
         np.clip(box, space.low, space.high), dtype=space.dtype
     )  # asarray: a shape () Box's stays an array
