@@ -57,6 +57,18 @@ def test_oracle_transmits_the_whole_goal_without_noise() -> None:
     assert set(np.unique(maps[~np.isnan(maps)])) <= {0.0, 1.0}  # a deterministic code
 
 
+def test_the_summary_says_its_capacity_leaves_drops_out_where_messages_are_dropped() -> None:
+    """summary.md read "channel capacity K(1 - H(flip_prob)) 4.000" at --drop-prob 0.5: it counts flips alone."""
+    from bitcomm.studies.analysis import markdown_summary
+
+    for drop, says in ((0.0, False), (0.5, True)):
+        task = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4, drop_prob=drop))
+        r = analyze_samples(collect_messages(OracleAgent(task), task, 2_000, 64, seed=5), task)
+        assert r.capacity_bits == 4.0
+        assert ("| channel capacity K(1 - H(flip_prob)), drops not counted (they lower it further) |" in
+                markdown_summary(r)) is says  # fmt: skip
+
+
 def test_noise_lowers_what_gets_through_and_random_says_nothing() -> None:
     task = TaskConfig(channel=ChannelConfig(flip_prob=0.05))
     r = analyze_samples(collect_messages(OracleAgent(task), task, 60_000, 512, seed=2), task)

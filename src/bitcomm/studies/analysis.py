@@ -115,6 +115,11 @@ def binary_entropy(p: float) -> float:
     return float(-p * math.log2(p) - (1 - p) * math.log2(1 - p))
 
 
+CAPACITY_WITH_DROPS = ", drops not counted (they lower it further)"
+"""What summary.md adds to the capacity's row where messages are dropped: a drop reads as the all-zeros word, which
+the figure does not count."""
+
+
 def channel_capacity(bits: int, flip_prob: float) -> float:
     """K (1 - H(flip_prob)): K independent binary symmetric channels (drops lower it further)."""
     return bits * (1.0 - binary_entropy(flip_prob))
@@ -285,7 +290,7 @@ def markdown_summary(report: ProtocolReport, heatmap_name: str | None = None) ->
         f"| I(goal; sent message) | {r.encoded_bits:.3f} |",
         f"| I(goal; received message), transmitted | {r.transmitted_bits:.3f} "
         f"(plug-in bias scale {r.bias_scale_bits:.3f}) |",
-        f"| channel capacity K(1 - H(flip_prob)) | {r.capacity_bits:.3f} |",
+        f"| channel capacity K(1 - H(flip_prob)){CAPACITY_WITH_DROPS if r.drop_prob else ''} | {r.capacity_bits:.3f} |",
         f"| I(goal; decoded goal), held out | {r.decoded_bits:.3f} |",
         "",
         f"Lookup decoder (most frequent goal per received pattern, fitted on half the episodes, scored on the rest): "
