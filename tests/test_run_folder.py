@@ -512,6 +512,39 @@ def test_garbled_weights_or_state_are_refused(run: Path, capsys) -> None:
     refused(capsys, "eval", str(weights_file), "--episodes", "10", naming="checksum mismatch")
 
 
+class _Payload:
+    """What a crafted resume state would run if it were unpickled: a file written beside the run."""
+
+    def __init__(self, mark: Path) -> None:
+        self.mark = mark
+
+    def __reduce__(self):  # type: ignore[no-untyped-def]
+        return (Path.touch, (self.mark,))
+
+
+def test_a_resume_state_crafted_to_run_code_is_refused_in_one_line_unrun(run: Path, capsys) -> None:
+    """A `.state.pt` holding a pickled call, its checksums rewritten to match (anyone can compute them), is refused
+    by `torch.load(weights_only=True)`: one line saying why, without torch's advice to load it with
+    `weights_only=False`, and the call never runs."""
+    from safetensors import safe_open
+    from safetensors.torch import save
+
+    from bitcomm.checkpoint import content_sha256, file_sha256
+
+    weights_file = resolve(run)
+    state_file = weights_file.with_name(weights_file.name.replace(".safetensors", ".state.pt"))
+    mark = run.parent / "ran"
+    torch.save({**torch.load(state_file, weights_only=True), "payload": _Payload(mark)}, state_file)
+    with safe_open(str(weights_file), framework="pt") as f:
+        meta, tensors = dict(f.metadata()), {k: f.get_tensor(k).clone() for k in f.keys()}
+    meta["state_sha256"] = file_sha256(state_file)
+    meta["sha256"] = content_sha256(tensors, meta)
+    weights_file.write_bytes(save(tensors, metadata=meta))
+    line = refused(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64", naming=state_file.name)
+    assert "could run code" in line and "weights_only" not in line, line
+    assert not mark.exists()
+
+
 def counted_loads(monkeypatch: pytest.MonkeyPatch, *sites: str) -> list[str]:
     """The paths `load_weights` is called with from now on, counted in `bitcomm.checkpoint` and at each module in
     `sites` that imported it by name (a site that no longer imports it is patched too, so a new import counts)."""

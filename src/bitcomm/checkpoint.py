@@ -27,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import pickle
 import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -34,7 +35,7 @@ from typing import Any, TypeVar
 
 import torch
 
-from bitcomm.errors import ConfigError
+from bitcomm.errors import ConfigError, one_line
 from bitcomm.files import write_atomic
 
 FORMAT = "bitcomm-checkpoint"
@@ -532,6 +533,24 @@ def load_env_weights(path: Path | str) -> tuple[dict[str, dict[str, torch.Tensor
     return weights, info
 
 
+WEIGHTS_ONLY_REFUSAL = "Weights only load failed"
+"""How torch's `weights_only` load begins its refusal of an object it will not build (a pickle's code)."""
+REFUSED_GLOBAL = re.compile(r"GLOBAL ([\w.]+)")
+"""The function or class such a refusal names (`GLOBAL posix.system`), in torch's words of any version."""
+
+
+def _refused_object(err: pickle.UnpicklingError) -> str:
+    """An unpickling error on one line. Where `weights_only` refused an object (a crafted file's code), the
+    function or class it refused, not torch's paragraphs, which advise loading the file with `weights_only=False`:
+    that would run it."""
+    text = str(err)
+    if not text.startswith(WEIGHTS_ONLY_REFUSAL):
+        return one_line(err)
+    named = REFUSED_GLOBAL.search(text)
+    what = f" ({named.group(1)})" if named else ""
+    return f"it holds an object other than tensors and plain values{what}, refused unloaded as it could run code"
+
+
 def load_state(weights_file: Path) -> dict[str, Any]:
     """The resume state stored next to a checkpoint's weights, checked against the weights' record of it."""
     state_path = weights_file.with_name(weights_file.name.replace(".safetensors", ".state.pt"))
@@ -542,8 +561,10 @@ def load_state(weights_file: Path) -> dict[str, Any]:
         raise _bad(state_path, "checksum mismatch: the file was changed or damaged after it was written")
     try:
         state = torch.load(state_path, weights_only=True)
+    except pickle.UnpicklingError as err:
+        raise _bad(state_path, f"not a bitcomm resume state ({_refused_object(err)})") from None
     except Exception as err:
-        raise _bad(state_path, f"not a bitcomm resume state ({type(err).__name__}: {err})") from None
+        raise _bad(state_path, f"not a bitcomm resume state ({one_line(err)})") from None
     if not isinstance(state, dict):
         raise _bad(state_path, "not a bitcomm resume state (not a dict)")
     return state
