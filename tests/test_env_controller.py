@@ -165,6 +165,15 @@ def test_an_episode_count_or_seed_evaluation_cannot_play_is_one_line(counted_run
         EnvController.load(counted_run, typed_env=typed, seed=-1)
 
 
+def test_a_numpy_seed_evaluates_and_samples_as_the_python_one(counted_run: Path) -> None:
+    """torch's `manual_seed` refuses a numpy integer ("an integer is required"), which `check_seed` takes."""
+    typed = f"{MODULE}:CountedEnv"
+    seeded = EnvController.load(counted_run, typed_env=typed, seed=np.int64(3)).generator.get_state()
+    assert torch.equal(seeded, torch.Generator().manual_seed(3).get_state())
+    played = evaluate_env(counted_run, 2, seed=np.int64(3), typed_env=typed)
+    assert played == evaluate_env(counted_run, 2, seed=3, typed_env=typed)
+
+
 def test_loading_builds_one_env_copy_and_closes_it(counted_run: Path) -> None:
     CountedEnv.made.clear()
     EnvController.load(counted_run, typed_env=f"{MODULE}:CountedEnv")

@@ -92,6 +92,48 @@ def test_a_seed_no_stream_takes_is_one_line_wherever_python_gives_one(seed: obje
     assert make_train_config("reinforced", task=task, seed=2**32 - 1).seed == 2**32 - 1
 
 
+def test_numpy_numbers_are_stored_as_python_ones_so_a_run_can_record_and_seed_them() -> None:
+    """A notebook's sweep hands numpy values (`np.arange`, `np.float32`): a config stores the Python values, so that
+    a run writes its config.json and torch takes its seed, where the run stopped in a traceback from json
+    ("float32 is not JSON serializable") or from torch ("an integer is required")."""
+    import json
+
+    import numpy as np
+    import torch
+
+    given = {"seed": np.int64(3), "lr": np.float32(0.5), "num_envs": np.int64(16), "anneal_lr": np.True_}
+    cfg = make_train_config("reinforced", hidden=np.int32(8), **given)
+    env_cfg = EnvTrainConfig(env="mpe2.simple_v3:parallel_env", seed=np.uint32(3), lr=np.float32(0.5))
+    values = (cfg.seed, cfg.lr, cfg.num_envs, cfg.anneal_lr, cfg.model.hidden, env_cfg.seed, env_cfg.lr)
+    assert [type(v) for v in values] == [int, float, int, bool, int, int, float]
+    json.dumps([cfg.to_dict(), env_cfg.to_dict()])
+    torch.Generator().manual_seed(cfg.seed)
+
+
+def test_a_yes_or_no_option_that_is_not_a_bool_is_one_line_not_read_as_true() -> None:
+    """`held_out_greedy="no"` is a truthy string: taken, it played greedily; any non-bool is named."""
+    with pytest.raises(ConfigError, match="invalid held-out-greedy='no': must be True or False"):
+        make_train_config("reinforced", held_out_greedy="no")
+    with pytest.raises(ConfigError, match="invalid plane-coords=1: must be True or False"):
+        ModelConfig(plane_coords=1)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="invalid obs-norm='false': must be True or False"):
+        EnvTrainConfig(env="mpe2.simple_v3:parallel_env", obs_norm="false")  # type: ignore[arg-type]
+
+
+def test_a_numpy_seed_drives_a_controllers_sampling_as_the_python_one() -> None:
+    """torch's `manual_seed` refuses a numpy integer ("an integer is required"), which `check_seed` takes."""
+    import numpy as np
+    import torch
+
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.policies.controller import Controller
+    from bitcomm.policies.networks import PolicyNet
+
+    net = PolicyNet(TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4)), ModelConfig())
+    made, python = Controller(net, {}, seed=np.int64(5)), Controller(net, {}, seed=5)
+    assert torch.equal(made.generator.get_state(), python.generator.get_state())
+
+
 def test_a_task_or_config_of_the_wrong_kind_is_named_not_an_attribute_error() -> None:
     """A notebook's likely slip, the grid's EnvConfig where a TaskConfig goes, or a dict for the config."""
     from bitcomm.config import EnvConfig

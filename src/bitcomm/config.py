@@ -7,7 +7,7 @@ bad value fails early with one line that names it (see `bitcomm.errors`).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -28,11 +28,13 @@ MAX_STEPS = 100_000
 """Episode length cap (`max_steps`): beyond it a random policy's evaluation would run for days."""
 
 
-def check_seed(value: object) -> None:
-    """One error line unless `value` is a seed every stream takes (an integer in [0, MAX_SEED]): numpy's
-    SeedSequence refuses a negative one and torch's manual_seed one past 64 bits, each in words naming neither."""
+def check_seed(value: object) -> int:
+    """`value` as a Python int, or one error line unless it is a seed every stream takes (an integer in [0,
+    MAX_SEED]): numpy's SeedSequence refuses a negative one and torch's manual_seed one past 64 bits, each in words
+    naming neither, and torch's manual_seed a numpy integer."""
     if not is_integer(value) or not 0 <= value <= MAX_SEED:  # type: ignore[operator]
         raise bad_value("seed", value, f"must be an integer in [0, {MAX_SEED}]")
+    return int(value)  # type: ignore[call-overload]
 
 
 def check_evaluation(episodes: object, seed: object) -> None:
@@ -41,6 +43,20 @@ def check_evaluation(episodes: object, seed: object) -> None:
     if not is_integer(episodes) or episodes < 1:  # type: ignore[operator]
         raise bad_value("episodes", episodes, "must be an integer >= 1")
     check_seed(seed)
+
+
+def plain_fields(config: Any) -> None:
+    """Store each numpy scalar of a config dataclass (a value from `np.arange`, a sweep's array) as the Python value
+    it is, so that the config stays JSON (a run's config.json and checkpoints: json refuses numpy's int64 and float32)
+    and seeds torch (whose `manual_seed` refuses a numpy integer); then one error line for a `bool` option that is
+    not a bool, where a string such as "no" would read as true."""
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if isinstance(value, np.generic):
+            value = value.item()
+            object.__setattr__(config, f.name, value)
+        if f.type in ("bool", bool) and not isinstance(value, bool):
+            raise bad_value(f.name.replace("_", "-"), value, "must be True or False")
 
 
 def _probability(config: object, field: str, name: str) -> None:

@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig, check_seed
+from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig, check_seed, plain_fields
 from bitcomm.errors import ConfigError, bad_value, check_instance, check_int, check_number, check_rate, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
@@ -242,6 +242,7 @@ class TrainConfig:
     robot may use) or samples them (how the policy was trained)."""
 
     def __post_init__(self) -> None:
+        plain_fields(self)
         check_instance("task", self.task, TaskConfig, TASK_ALLOWED)
         if self.estimator not in ESTIMATORS:
             raise bad_value("estimator", self.estimator, f"choose one of {', '.join(ESTIMATORS)}")

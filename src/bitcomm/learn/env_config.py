@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from bitcomm.config import check_seed
+from bitcomm.config import check_seed, plain_fields
 from bitcomm.envs.subproc_vector import check_workers
 from bitcomm.errors import bad_value, check_int, check_number, check_rate, is_number
 from bitcomm.learn.estimators import ESTIMATORS
@@ -85,6 +85,7 @@ class EnvTrainConfig:
     keep_checkpoints: int = 3
 
     def __post_init__(self) -> None:
+        plain_fields(self)
         if self.estimator not in ESTIMATORS:
             raise bad_value("estimator", self.estimator, f"choose one of {', '.join(ESTIMATORS)}")
         if self.messages not in MESSAGE_HEADS:

@@ -44,8 +44,7 @@ class EnvController:
         self.policy = policy.eval()
         self.config = config
         """The run's `EnvTrainConfig`: its env, env kwargs and channel (what `make_env` builds)."""
-        check_seed(seed)  # as `Controller`: torch's own refusals name no seed
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = torch.Generator().manual_seed(check_seed(seed))  # as `Controller`: torch's refusals name none
 
     @property
     def layout(self) -> EnvLayout:

@@ -98,7 +98,7 @@ def evaluate_env_policy(
     """`evaluate_env` for a policy `load_env_policy` read (so `bitcomm eval` can check, from its layout, that
     `min(episodes, EVAL_CHUNK)` episodes side by side fit before they play)."""
     check_evaluation(episodes, seed)
-    generator = torch.Generator().manual_seed(seed)
+    generator = torch.Generator().manual_seed(int(seed))  # a numpy integer too, which torch refuses
     returns: list[np.ndarray] = []
     lengths: list[np.ndarray] = []
     chunk = 0

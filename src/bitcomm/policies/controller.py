@@ -43,8 +43,8 @@ class Controller:
         """The training config as saved with the checkpoint (`TrainConfig.to_dict()`)."""
         self.info = info or {}
         """Checkpoint facts: path, episodes and batches trained."""
-        check_seed(seed)  # torch takes -1 and refuses 2**64 or a string in words naming neither
-        self.generator = torch.Generator().manual_seed(seed)
+        # torch takes -1 and refuses 2**64, a numpy integer or a string in words naming neither
+        self.generator = torch.Generator().manual_seed(check_seed(seed))
 
     @property
     def task(self) -> TaskConfig:

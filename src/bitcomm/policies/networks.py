@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from bitcomm.config import TaskConfig
+from bitcomm.config import TaskConfig, plain_fields
 from bitcomm.envs.core import N_MOVES
 from bitcomm.errors import bad_value, check_int
 from bitcomm.policies.heads import MessageHead, make_head
@@ -80,6 +80,7 @@ class ModelConfig:
     gradient through the map (and, in the `supervised` recipe, from the auxiliary goal loss)."""
 
     def __post_init__(self) -> None:
+        plain_fields(self)
         if self.encoder not in ENCODERS:
             raise bad_value("encoder", self.encoder, f"choose one of {', '.join(ENCODERS)}")
         if self.message_reads not in MESSAGE_READS:
