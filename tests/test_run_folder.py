@@ -218,6 +218,32 @@ def test_a_resume_takes_the_budget_and_how_often_it_saves_and_the_flags_it_was_t
     assert kept[-1] == 64 and len(kept) <= 2  # the last one and the best
 
 
+def test_a_resume_from_python_with_another_config_is_one_line_naming_the_option(run: Path) -> None:
+    """`train(cfg, out, resume=True)` continues the run as it started, as `bitcomm train --resume` does: a config that
+    would change what it learns is refused in one line naming the option, where the run went on under the new seed or
+    learning rate and recorded it as the whole run's. The budget and how often it saves may change."""
+    from bitcomm.learn.run import train
+
+    before = sorted(p.name for p in (run / "checkpoints").iterdir())
+    other_task = TaskConfig(EnvConfig(size=5, max_steps=16), ChannelConfig(bits=5))
+    for cfg, line in (
+        (tiny_config(episodes=64, seed=9), "invalid seed=9: the run in .* was trained with seed=0, and a resume"),
+        (tiny_config(episodes=64, lr=0.1), "invalid lr=0.1: .* was trained with lr=0.003"),
+        (tiny_config(episodes=64, num_envs=32), "invalid num_envs=32: .* was trained with num_envs=16"),
+        (
+            make_train_config(task=other_task, num_envs=16, episodes=64),
+            "invalid task.env.size=5: .* with task.env.size=4",
+        ),
+    ):
+        with pytest.raises(ConfigError, match=line):
+            train(cfg, run, resume=True, progress=False)
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == before
+    resumed = train(
+        tiny_config(episodes=64, checkpoint_seconds=30.0, keep_checkpoints=1), run, resume=True, progress=False
+    )
+    assert resumed.name == "ckpt_000000064.safetensors"
+
+
 def test_a_resume_at_or_past_its_budget_says_it_has_nothing_to_train(run: Path, capsys) -> None:
     """`make train` run again resumes a finished run: it trains nothing, and says so rather than looking stuck."""
     for budget in ("48", "32"):

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from bitcomm.errors import bad_value
 from bitcomm.learn.ray_address import ADDRESS_FORMS, host_port
+from bitcomm.learn.resume_rules import RESUME_MAY_CHANGE
 
 if TYPE_CHECKING:
     from bitcomm.learn.config import TrainConfig
@@ -28,13 +29,6 @@ def ray_address(text: str) -> str:
     if text.strip() == "auto" or host_port(text) is not None:
         return text.strip()
     raise argparse.ArgumentTypeError(f"invalid value {text!r}: {ADDRESS_FORMS}")
-
-
-SAVING = ("checkpoint_seconds", "keep_checkpoints")
-"""The options that say how often a run saves: a resume applies them as typed now."""
-RESUME_MAY_CHANGE = frozenset({"episodes", "backend", "workers", "staleness", "env_workers", *SAVING})
-"""The options a resume takes from its command line: the budget, where it runs and how often it saves, none of which
-changes what it learns."""
 
 
 def check_resume_flags(out: Path, typed: dict[str, Any], recorded: Callable[[str], Any]) -> None:

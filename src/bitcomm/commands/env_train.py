@@ -10,10 +10,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bitcomm.commands.backend_flags import SAVING, check_resume_flags
+from bitcomm.commands.backend_flags import check_resume_flags
 from bitcomm.commands.env_flags import ENV_ONLY
 from bitcomm.commands.learning_flags import learning_overrides
 from bitcomm.errors import bad_value, check_int, plural
+from bitcomm.learn.resume_rules import SAVING
 
 if TYPE_CHECKING:
     from bitcomm.envs.vector import EnvLayout

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bitcomm.commands import env_train
-from bitcomm.commands.backend_flags import SAVING, add_backend_flags, check_resume_flags, execution
+from bitcomm.commands.backend_flags import add_backend_flags, check_resume_flags, execution
 from bitcomm.commands.common import add_task_flags, task_from_args
 from bitcomm.commands.env_flags import add_env_flags
 from bitcomm.commands.flags import (
@@ -34,6 +34,7 @@ from bitcomm.commands.learning_flags import add_learning_flags, learning_overrid
 from bitcomm.errors import bad_value
 from bitcomm.learn.options import field_default
 from bitcomm.learn.recipes import DEFAULT_RECIPE, RECIPES
+from bitcomm.learn.resume_rules import SAVING
 
 if TYPE_CHECKING:
     from bitcomm.config import TaskConfig

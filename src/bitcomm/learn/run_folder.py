@@ -50,10 +50,11 @@ from bitcomm.checkpoint import (
     save_checkpoint,
 )
 from bitcomm.config import TaskConfig
-from bitcomm.errors import ConfigError, one_line, os_error_line
+from bitcomm.errors import ConfigError, bad_value, one_line, os_error_line
 from bitcomm.files import naming, write_atomic, write_text_atomic
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
+from bitcomm.learn.resume_rules import changed_on_resume
 from bitcomm.plotting import save_figure
 from bitcomm.run_lock import run_lock
 
@@ -582,6 +583,7 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
     if not resume:
         return None
     weights, info = load_weights(out)
+    check_resumed_as_started(cfg, out, info["config"])
     state = load_state(resolve(out))
     for key in ("episodes", "batches", "agent_steps", "wall_s", "recent_lengths", "recent_returns"):
         if key not in state:
@@ -594,6 +596,21 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
     if played >= cfg.episodes:  # `make train` run again: say why nothing trains
         print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train")
     return {**state, "weights": weights, "info": info}
+
+
+def check_resumed_as_started(cfg: RunConfig, out: Path, recorded: dict[str, Any]) -> None:
+    """One line where `cfg` would change what the run in `out` learns (its checkpoint's `recorded` config): a resume
+    continues a run as it started, as `bitcomm train --resume` does, where `train(cfg, out, resume=True)` from
+    Python went on silently under another seed, learning rate or batch, and recorded it as the whole run's."""
+    changed = changed_on_resume(recorded, cfg.to_dict())
+    if changed:
+        name, value, was = changed[0]
+        raise bad_value(
+            name,
+            value,
+            f"the run in {str(out)!r} was trained with {name}={was!r}, and a resume continues it as it started (only "
+            "the budget, where it runs and how often it saves may change)",
+        )
 
 
 FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)

@@ -56,6 +56,7 @@ from bitcomm.errors import ConfigError, bad_value, check_int, plural
 from bitcomm.files import write_atomic, write_text_atomic
 from bitcomm.learn.options import Option, learning_options
 from bitcomm.learn.recipes import DEFAULT_RECIPE
+from bitcomm.learn.resume_rules import flat
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policies.source import TASK_FLAGS
 from bitcomm.stats import mean_interval
@@ -320,7 +321,7 @@ def folder_status(folder: Path, train: TrainConfig | EnvTrainConfig) -> str:
     latest = folder / CHECKPOINTS / LATEST
     if not latest.is_file():
         return "new"
-    recorded, wanted = _flat(recorded_config(folder, type(train)).to_dict()), _flat(train.to_dict())
+    recorded, wanted = flat(recorded_config(folder, type(train)).to_dict()), flat(train.to_dict())
     differs = [k for k in wanted if k not in RESUMABLE and recorded.get(k) != wanted[k]]
     if differs:
         raise bad_value("out", str(folder), f"it holds a run with other {', '.join(differs)}; use another --out")
@@ -350,14 +351,6 @@ def recorded_config(folder: Path, kind: type[Any]) -> Any:
     except (KeyError, TypeError, AttributeError) as err:
         why = f"not a run's config ({type(err).__name__}: {err})"
         raise bad_value("config", str(folder / "config.json"), why) from None
-
-
-def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """{"model": {"hidden": 128}} -> {"model.hidden": 128}, so a difference names the option."""
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
-    return out
 
 
 def read_evaluation(run: Run, episodes: int, seed: int) -> dict[str, Any] | None:
