@@ -239,6 +239,10 @@ def test_a_bool_or_a_fraction_is_not_a_count_or_an_agent(make, names: str) -> No
         (lambda: VecGoalExchange(TaskConfig(), 0), "num_envs=0: must be an integer >= 1"),
         (lambda: VecGoalExchange(TaskConfig(), "8"), "num_envs='8'"),
         (lambda: VecGoalExchange(TaskConfig(), 8, seed=-1), "seed=-1: must be None, an integer >= 0"),
+        # a number where a list goes was Python's "'int' object is not iterable", naming nothing
+        (lambda: EnvConfig(observes=1), "observes=1: needs one entry per agent"),
+        (lambda: ChannelConfig(recipients=[1, 0]), r"recipients=\[1, 0\]: one list of recipient agents per sender"),
+        (lambda: ChannelConfig(recipients=3), "recipients=3: one list"),
     ],
 )
 def test_a_value_of_the_wrong_kind_is_named_in_one_line(make, names: str) -> None:

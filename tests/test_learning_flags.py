@@ -92,6 +92,17 @@ def test_a_seed_no_stream_takes_is_one_line_wherever_python_gives_one(seed: obje
     assert make_train_config("reinforced", task=task, seed=2**32 - 1).seed == 2**32 - 1
 
 
+def test_a_name_that_is_no_learning_option_is_one_line_naming_the_closest() -> None:
+    """A typo was the dataclass's TypeError ("unexpected keyword argument"), a list's length where a list goes
+    Python's "'int' object is not iterable"."""
+    with pytest.raises(ConfigError, match="invalid option='num_env': not a learning option.*did you mean num_envs"):
+        make_train_config("reinforced", num_env=16)
+    with pytest.raises(ConfigError, match="invalid option='model': not a learning option.*ModelConfig given by name"):
+        make_train_config("reinforced", model=ModelConfig())
+    with pytest.raises(ConfigError, match="invalid conv_channels=8: one or more integers"):
+        make_train_config("reinforced", conv_channels=8)
+
+
 def test_numpy_numbers_are_stored_as_python_ones_so_a_run_can_record_and_seed_them() -> None:
     """A notebook's sweep hands numpy values (`np.arange`, `np.float32`): a config stores the Python values, so that
     a run writes its config.json and torch takes its seed, where the run stopped in a traceback from json

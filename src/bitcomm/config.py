@@ -45,6 +45,15 @@ def check_evaluation(episodes: object, seed: object) -> None:
     check_seed(seed)
 
 
+def entries(name: str, value: object, allowed: str) -> tuple[Any, ...]:
+    """`value`'s entries as a tuple, or one error line naming it where it has none (a number where a sequence goes),
+    rather than Python's "'int' object is not iterable", which names nothing."""
+    try:
+        return tuple(value)  # type: ignore[call-overload,arg-type]
+    except TypeError:
+        raise bad_value(name, value, allowed) from None
+
+
 def plain_fields(config: Any) -> None:
     """Store each numpy scalar of a config dataclass (a value from `np.arange`, a sweep's array) as the Python value
     it is, so that the config stays JSON (a run's config.json and checkpoints: json refuses numpy's int64 and float32)
@@ -123,7 +132,7 @@ class EnvConfig:
         _probability(self, "act_fail_prob", "act_fail_prob")
         _count(self, "act_delay", "act_delay", 0, self.max_steps - 1, "a move must take effect within max_steps")
         if self.observes is not None:
-            obs = tuple(self.observes)
+            obs = entries("observes", self.observes, f"needs one entry per agent ({self.n_agents})")
             if len(obs) != self.n_agents:
                 raise bad_value("observes", obs, f"needs one entry per agent ({self.n_agents})")
             for i, j in enumerate(obs):
@@ -168,7 +177,12 @@ class ChannelConfig:
         _probability(self, "flip_prob", "flip_prob")
         _probability(self, "drop_prob", "drop_prob")
         if self.recipients is not None:
-            rows = tuple(tuple(r) for r in self.recipients)
+            try:
+                rows = tuple(tuple(r) for r in self.recipients)
+            except TypeError:  # a number where a list goes, which Python calls "not iterable", naming nothing
+                raise bad_value(
+                    "recipients", self.recipients, "one list of recipient agents per sender, e.g. [[1], [0]]"
+                ) from None
             if not all(is_integer(x) for r in rows for x in r):
                 raise bad_value("recipients", rows, "entries must be agent indices (integers)")
             object.__setattr__(self, "recipients", tuple(tuple(int(x) for x in r) for r in rows))

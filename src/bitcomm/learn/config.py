@@ -9,6 +9,7 @@ training-time information, or hand a policy head a target other than the return,
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -482,10 +483,31 @@ def recipe_values(recipe: str, task: TaskConfig, message_reads: str | None = Non
     return values
 
 
+TRAIN_OPTIONS = {f.name for f in dataclasses.fields(TrainConfig)} - {"task", "model", "recipe"}
+"""The learning options `make_train_config` takes by name besides `MODEL_OPTIONS` (the task and the recipe are its
+own arguments; the model is built from its options)."""
+
+
+def check_option_names(overrides: dict[str, Any]) -> None:
+    """One line for a name that is not a learning option (a typo), naming the closest ones, rather than a TypeError
+    from the dataclass that names no option it takes."""
+    known = TRAIN_OPTIONS | MODEL_OPTIONS
+    for name in overrides:
+        if name not in known:
+            close = [] if name == "model" else difflib.get_close_matches(name, sorted(known), n=3)
+            hint = f"; did you mean {' or '.join(close)}?" if close else ""
+            raise bad_value(
+                "option",
+                name,
+                f"not a learning option: a field of TrainConfig, or of ModelConfig given by name (hidden=64){hint}",
+            )
+
+
 def make_train_config(recipe: str = DEFAULT_RECIPE, task: TaskConfig | None = None, **overrides: Any) -> TrainConfig:
     """A TrainConfig from a recipe plus explicit options (None means "the recipe's value")."""
     task = TaskConfig() if task is None else task
     check_instance("task", task, TaskConfig, TASK_ALLOWED)
+    check_option_names(overrides)
     values = recipe_values(recipe, task, overrides.get("message_reads"))
     values.update({k: v for k, v in overrides.items() if v is not None})
     if overrides.get("minibatches") is None and isinstance(values["num_envs"], int):  # a batch splits into as many

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from bitcomm.config import TaskConfig, plain_fields
+from bitcomm.config import TaskConfig, entries, plain_fields
 from bitcomm.envs.core import N_MOVES
 from bitcomm.errors import bad_value, check_int
 from bitcomm.policies.heads import MessageHead, make_head
@@ -95,7 +95,7 @@ class ModelConfig:
         stride = ModelConfig.__dataclass_fields__["conv_stride"].default
         if self.conv_stride != stride and self.encoder != "conv":
             raise bad_value("conv-stride", self.conv_stride, f"acts only with --encoder conv; leave it at {stride}")
-        channels = tuple(self.conv_channels)
+        channels = entries("conv_channels", self.conv_channels, "one or more integers >= 1")
         if not channels or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in channels):
             raise bad_value("conv_channels", self.conv_channels, "one or more integers >= 1")
 
