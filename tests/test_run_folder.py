@@ -571,6 +571,16 @@ def test_a_resume_state_crafted_to_run_code_is_refused_in_one_line_unrun(run: Pa
     assert not mark.exists()
 
 
+@pytest.mark.parametrize("path", [None, 5, ["runs/demo"]])
+def test_a_path_that_is_neither_a_str_nor_a_path_is_one_line(path: object) -> None:
+    """`Controller.load(None)` (a notebook's unset variable) was pathlib's TypeError, naming no argument."""
+    from bitcomm import Controller, EnvController  # type: ignore[attr-defined]
+
+    for load in (Controller.load, EnvController.load, load_weights):
+        with pytest.raises(ConfigError, match=r"invalid path=.*: must be a run folder or a checkpoint file"):
+            load(path)
+
+
 def counted_loads(monkeypatch: pytest.MonkeyPatch, *sites: str) -> list[str]:
     """The paths `load_weights` is called with from now on, counted in `bitcomm.checkpoint` and at each module in
     `sites` that imported it by name (a site that no longer imports it is patched too, so a new import counts)."""

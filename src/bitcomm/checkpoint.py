@@ -27,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import pickle
 import re
 from collections.abc import Callable, Iterator
@@ -35,7 +36,7 @@ from typing import Any, TypeVar
 
 import torch
 
-from bitcomm.errors import ConfigError, one_line
+from bitcomm.errors import ConfigError, bad_value, one_line
 from bitcomm.files import write_atomic
 
 FORMAT = "bitcomm-checkpoint"
@@ -292,6 +293,8 @@ def _not_a_file(path: Path) -> str:
 def resolve(path: Path | str) -> Path:
     """A run folder, its `checkpoints/` folder, a pointer in it (`latest.json`, `best.json`) or a `.safetensors`
     file -> the checkpoint file."""
+    if not isinstance(path, (str, os.PathLike)):  # `Controller.load(None)` was pathlib's "expected str, bytes or ..."
+        raise bad_value("path", path, "must be a run folder or a checkpoint file, as a str or a Path")
     p = Path(path)
     if p.name in POINTERS and p.is_file():
         named = p.parent / read_latest(p.parent, p.name)["checkpoint"]
