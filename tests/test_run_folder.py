@@ -581,6 +581,22 @@ def test_a_path_that_is_neither_a_str_nor_a_path_is_one_line(path: object) -> No
             load(path)
 
 
+@pytest.mark.parametrize("out", ["", None])
+def test_a_run_folder_that_is_empty_or_no_path_is_one_line(out: object, tmp_path: Path, monkeypatch) -> None:
+    """`train(cfg, "")` trained into the current folder (`--out ""` is refused), `train(cfg, None)` was pathlib's
+    TypeError; neither writes anything."""
+    from bitcomm.learn.env_config import EnvTrainConfig
+    from bitcomm.learn.env_run import train_env
+    from bitcomm.learn.run import train
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=f"invalid out={out!r}: must be the run's folder, a non-empty str or a Path"):
+        train(tiny_config(), out, progress=False)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=f"invalid out={out!r}"):
+        train_env(EnvTrainConfig(env="mpe2.simple_v3:parallel_env"), out, progress=False)  # type: ignore[arg-type]
+    assert list(tmp_path.iterdir()) == []
+
+
 def counted_loads(monkeypatch: pytest.MonkeyPatch, *sites: str) -> list[str]:
     """The paths `load_weights` is called with from now on, counted in `bitcomm.checkpoint` and at each module in
     `sites` that imported it by name (a site that no longer imports it is patched too, so a new import counts)."""

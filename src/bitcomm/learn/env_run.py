@@ -35,6 +35,7 @@ from bitcomm.learn.run_folder import (
     prepare,
     read_json_object,
     restore_learner,
+    run_folder,
     save_learner,
     stopped,
     stops_in_one_line,
@@ -45,9 +46,9 @@ from bitcomm.policies.denormals import flush_denormals
 from bitcomm.run_lock import run_lock
 
 
-def train_env(cfg: EnvTrainConfig, out: Path, resume: bool = False, progress: bool = True) -> Path:
+def train_env(cfg: EnvTrainConfig, out: str | Path, resume: bool = False, progress: bool = True) -> Path:
     """Train until `cfg.episodes` episodes are played (whole batches); returns the latest checkpoint."""
-    out = Path(out)
+    out = run_folder(out)
     keep_freed_memory()
     check_start(out, resume)
     # refuses a bad env or channel before the folder is touched; closed (its workers stopped) however the run ends

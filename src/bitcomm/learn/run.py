@@ -32,6 +32,7 @@ from bitcomm.learn.run_folder import (
     oracle_record,
     prepare,
     restore_learner,
+    run_folder,
     save_learner,
     stops_in_one_line,
     train_batches,
@@ -42,11 +43,13 @@ from bitcomm.run_lock import run_lock
 
 
 # ---------------------------------------------------------------------------------------------- loop
-def train(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool = True, address: str | None = None) -> Path:
+def train(
+    cfg: TrainConfig, out: str | Path, resume: bool = False, progress: bool = True, address: str | None = None
+) -> Path:
     """Train in `cfg.mode` (or on Ray, at the cluster `address`) until `cfg.episodes` episodes are played;
     returns the latest checkpoint."""
     check_instance("cfg", cfg, TrainConfig, "a TrainConfig, e.g. bitcomm.learn.config.make_train_config()")
-    out = Path(out)
+    out = run_folder(out)
     keep_freed_memory()
     check_start(out, resume)
     if cfg.backend == "ray":

@@ -28,6 +28,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
+from os import PathLike
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
@@ -537,6 +538,14 @@ def has_checkpoint(out: Path) -> bool:
 
 RUN_FILES = ("config.json", "metrics.csv", "learning_curve.png", "learning_curve.svg", "tb")
 """The files (and TensorBoard's folder) a run writes at its folder's top, which a fresh run overwrites."""
+
+
+def run_folder(out: object) -> Path:
+    """`out` of `train(cfg, out)` as a Path, or one line: an empty one would be the current folder, as `--out ""` is
+    refused, and one that is no path (None) was pathlib's TypeError, naming no argument."""
+    if not isinstance(out, (str, PathLike)) or not str(out):
+        raise bad_value("out", out, "must be the run's folder, a non-empty str or a Path")
+    return Path(out)
 
 
 def check_start(out: Path, resume: bool) -> None:
