@@ -597,6 +597,19 @@ def test_a_run_folder_that_is_empty_or_no_path_is_one_line(out: object, tmp_path
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_metrics_row_whose_episodes_is_no_count_is_one_line_on_resume(run: Path, capsys) -> None:
+    """A hand edit or a damaged disk: it was a traceback from the TensorBoard writer's purge step, the resume begun."""
+    metrics = run / "metrics.csv"
+    *rows, last = metrics.read_text().splitlines()
+    fields = last.split(",")
+    fields[1] = "forty-eight"  # episodes
+    metrics.write_text("\n".join([*rows, ",".join(fields)]) + "\n")
+    before = metrics.read_text()
+    line = refused(capsys, "train", *QUICK, "--out", str(run), "--resume", "--episodes", "64", naming="metrics.csv")
+    assert "'forty-eight'" in line and "repair or remove it to resume" in line
+    assert metrics.read_text() == before
+
+
 def counted_loads(monkeypatch: pytest.MonkeyPatch, *sites: str) -> list[str]:
     """The paths `load_weights` is called with from now on, counted in `bitcomm.checkpoint` and at each module in
     `sites` that imported it by name (a site that no longer imports it is patched too, so a new import counts)."""

@@ -210,7 +210,10 @@ def read_metrics(path: Path, upto_batch: int) -> list[dict[str, str]]:
             rows = list(csv.DictReader(f))
         if rows and None in rows[-1].values():
             rows.pop()
-        return [r for r in rows if int(r["batch"]) <= upto_batch]
+        kept = [r for r in rows if int(r["batch"]) <= upto_batch]
+        for r in kept:
+            int(r["episodes"])  # the step from which a resume's TensorBoard writer purges (`Logger`)
+        return kept
     except (OSError, ValueError, KeyError, TypeError, csv.Error) as err:
         raise ConfigError(
             f"invalid metrics={str(path)!r}: unreadable on resume ({type(err).__name__}: {err}); "
