@@ -321,6 +321,37 @@ def test_eval_batch_matches_the_evaluator() -> None:
     assert EVAL_BATCH == EVAL_CHUNK
 
 
+def _answer(moves: object = 0, bits: object = 0, n: int = 2, K: int = 4):  # type: ignore[no-untyped-def]
+    """A policy of one's own that answers every episode with these moves and bits (a shape of its own where given)."""
+    import numpy as np
+
+    def policy(obs):  # type: ignore[no-untyped-def]
+        B = obs.planes.shape[0]
+        return np.full((B, n), moves), np.full((B, n, K), bits)
+
+    return policy
+
+
+@pytest.mark.parametrize(
+    ("policy", "line"),
+    [
+        (_answer(moves=-1), "invalid policy move=-1: every move must be 0 to 4"),  # was the last move, silently
+        (_answer(moves=1.5), "invalid policy move=1.5"),  # was move 1, silently
+        (_answer(bits=2), "invalid policy bit=2: every bit must be 0 or 1"),  # was a 1, silently
+        (_answer(moves=7), "invalid policy move=7"),  # was numpy's IndexError
+        (_answer(K=3), r"invalid policy output shapes moves=\(10, 2\), bits=\(10, 2, 3\): expected"),
+        (lambda obs: None, "invalid policy output='NoneType': must be a \\(moves, bits\\) pair"),
+    ],
+)
+def test_a_policy_of_ones_own_that_answers_what_the_env_cannot_take_is_one_line(policy, line: str) -> None:
+    from bitcomm.policies.evaluation import evaluate
+
+    task = TaskConfig(EnvConfig(size=3), ChannelConfig(bits=4))
+    with pytest.raises(ConfigError, match=line):
+        evaluate(policy, task, episodes=10)
+    assert evaluate(_answer(moves=1.0, bits=True), task, episodes=10).episodes == 10  # integral floats, bools: taken
+
+
 @pytest.mark.parametrize(("bits", "used_mib"), [(16, 854), (18, 2200)])
 def test_training_with_one_hot_messages_is_refused_where_it_would_not_fit_and_only_there(
     bits: int, used_mib: int, monkeypatch: pytest.MonkeyPatch

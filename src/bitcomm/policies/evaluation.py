@@ -18,9 +18,9 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from bitcomm.config import TaskConfig, check_evaluation
-from bitcomm.envs.core import StepResult
-from bitcomm.envs.vec import VecGoalExchange
-from bitcomm.errors import bad_value
+from bitcomm.envs.core import N_MOVES, StepResult
+from bitcomm.envs.vec import Observation, VecGoalExchange
+from bitcomm.errors import ConfigError, bad_value
 from bitcomm.policies.reference import Policy
 from bitcomm.stats import mean_interval
 
@@ -84,10 +84,40 @@ def seeded_episode_envs(task: TaskConfig, episodes: int, seed: int) -> Iterator[
         yield lo, VecGoalExchange(task, min(EVAL_CHUNK, episodes - lo), seed=chunk_seed)
 
 
+def checked(policy: Policy, task: TaskConfig) -> Policy:
+    """`policy` with each answer checked against what the env takes, `(B, n)` moves in [0, N_MOVES) and `(B, n, K)`
+    bits of 0 or 1, so that a policy of the user's own is one error line naming what it returned: a move of -1 was
+    the last move (numpy's negative index), 1.5 a move cast to 1 and a bit of 2 a bit sent as 1, without a word; a
+    move of 7 or a shape of another task numpy's IndexError or broadcast error."""
+    n, K = task.env.n_agents, task.channel.bits
+
+    def play(obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+        answer = policy(obs)
+        B = obs.planes.shape[0]
+        if not isinstance(answer, tuple) or len(answer) != 2:
+            raise bad_value("policy output", type(answer).__name__, "must be a (moves, bits) pair")
+        moves, bits = np.asarray(answer[0]), np.asarray(answer[1])
+        if moves.shape != (B, n) or bits.shape != (B, n, K):
+            raise ConfigError(
+                f"invalid policy output shapes moves={moves.shape}, bits={bits.shape}: expected ({B}, {n}) and "
+                f"({B}, {n}, {K}) for {B} episodes of {n} agents and {K}-bit messages"
+            )
+        bad_move = ~np.isin(moves, np.arange(N_MOVES))
+        if bad_move.any():
+            raise bad_value("policy move", moves[bad_move].flat[0].item(), f"every move must be 0 to {N_MOVES - 1}")
+        bad_bit = (bits != 0) & (bits != 1)
+        if bad_bit.any():
+            raise bad_value("policy bit", bits[bad_bit].flat[0].item(), "every bit must be 0 or 1")
+        return moves.astype(np.int64, copy=False), bits.astype(np.uint8, copy=False)
+
+    return play
+
+
 def run_first_episodes(
     policy: Policy, task: TaskConfig, episodes: int, seed: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Play the seeded episode set; return per-episode lengths, team returns and successes."""
+    policy = checked(policy, task)
     lengths = np.zeros(episodes, dtype=np.int64)
     returns = np.zeros(episodes, dtype=np.float64)
     success = np.zeros(episodes, dtype=bool)
