@@ -174,6 +174,19 @@ def test_a_numpy_seed_evaluates_and_samples_as_the_python_one(counted_run: Path)
     assert played == evaluate_env(counted_run, 2, seed=3, typed_env=typed)
 
 
+def test_a_greedy_or_generator_of_the_wrong_kind_is_one_line() -> None:
+    """`greedy="False"` is a truthy string: taken, it played greedily; a generator that is not a torch one was torch's
+    TypeError from deep in its sampling."""
+    controller = random_controller(config(), "bitwise", seed=0)
+    env = controller.make_env()
+    observations, _ = env.reset(seed=0)
+    with pytest.raises(ConfigError, match="invalid greedy='False': must be True or False"):
+        controller.act(observations, greedy="False")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="invalid generator=5: must be a torch.Generator"):
+        controller.act(observations, generator=5)  # type: ignore[arg-type]
+    env.close()
+
+
 def test_loading_builds_one_env_copy_and_closes_it(counted_run: Path) -> None:
     CountedEnv.made.clear()
     EnvController.load(counted_run, typed_env=f"{MODULE}:CountedEnv")

@@ -145,6 +145,25 @@ def test_a_numpy_seed_drives_a_controllers_sampling_as_the_python_one() -> None:
     assert torch.equal(made.generator.get_state(), python.generator.get_state())
 
 
+def test_a_controllers_greedy_or_generator_of_the_wrong_kind_is_one_line() -> None:
+    """`greedy="False"` is a truthy string: taken, it played greedily; a generator that is not a torch one was torch's
+    TypeError from deep in its sampling."""
+    import numpy as np
+
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.policies.controller import Controller
+    from bitcomm.policies.networks import PolicyNet
+
+    task = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
+    controller = Controller(PolicyNet(task, ModelConfig()), {})
+    planes, received = np.zeros((2, 4, 4), np.uint8), np.zeros((1, 4), np.uint8)
+    with pytest.raises(ConfigError, match="invalid greedy='False': must be True or False"):
+        controller.act(planes, received, greedy="False")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="invalid generator=5: must be a torch.Generator"):
+        controller.act(planes, received, generator=5)  # type: ignore[arg-type]
+    assert controller.act(planes, received, greedy=np.True_)[1].shape == (4,)
+
+
 def test_a_task_or_config_of_the_wrong_kind_is_named_not_an_attribute_error() -> None:
     """A notebook's likely slip, the grid's EnvConfig where a TaskConfig goes, or a dict for the config."""
     from bitcomm.config import EnvConfig

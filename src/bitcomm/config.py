@@ -64,8 +64,16 @@ def plain_fields(config: Any) -> None:
         if isinstance(value, np.generic):
             value = value.item()
             object.__setattr__(config, f.name, value)
-        if f.type in ("bool", bool) and not isinstance(value, bool):
-            raise bad_value(f.name.replace("_", "-"), value, "must be True or False")
+        if f.type in ("bool", bool):
+            check_bool(f.name.replace("_", "-"), value)
+
+
+def check_bool(name: str, value: object) -> bool:
+    """`value` as a bool, or one error line unless it is True or False (numpy's too): a string such as "no" or "False"
+    would read as true."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise bad_value(name, value, "must be True or False")
+    return bool(value)
 
 
 def _probability(config: object, field: str, name: str) -> None:

@@ -25,12 +25,13 @@ import numpy as np
 import torch
 from pettingzoo import ParallelEnv
 
-from bitcomm.config import check_seed
+from bitcomm.config import check_bool, check_seed
 from bitcomm.envs.vector import EnvLayout, agent_rows, check_finite, joint_action
 from bitcomm.errors import bad_value
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_eval import load_env_policy
 from bitcomm.learn.env_rollout import env_factory
+from bitcomm.policies.controller import sampling_generator
 from bitcomm.policies.mlp import MlpPolicy
 
 KEYS = ("observation", "messages")
@@ -82,7 +83,9 @@ class EnvController:
         if not alive.any():  # nothing to act for: no network call, no draw (as `play` after every copy ended)
             return {}
         act_out, msg_logits = self.policy(torch.from_numpy(obs), torch.from_numpy(received))
-        actions, bits = self.policy.draw(act_out, msg_logits, greedy, generator or self.generator)
+        actions, bits = self.policy.draw(
+            act_out, msg_logits, check_bool("greedy", greedy), sampling_generator(generator, self.generator)
+        )
         present = [(i, a) for i, a in enumerate(L.agents) if alive[0, i]]
         return joint_action(L, L.clip(actions.numpy())[0], bits.numpy()[0], present)
 

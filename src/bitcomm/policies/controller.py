@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import load_grid_weights
-from bitcomm.config import TaskConfig, check_seed
-from bitcomm.errors import ConfigError, one_line
+from bitcomm.config import TaskConfig, check_bool, check_seed
+from bitcomm.errors import ConfigError, check_instance, one_line
 from bitcomm.policies.agent import act
 from bitcomm.policies.agent_policies import agent_batch
 from bitcomm.policies.networks import ModelConfig, PolicyNet
@@ -32,6 +32,15 @@ def model_from_dict(d: dict[str, Any]) -> ModelConfig:
     if "conv_channels" in values:
         values["conv_channels"] = tuple(values["conv_channels"])
     return ModelConfig(**values)
+
+
+def sampling_generator(given: object, own: torch.Generator) -> torch.Generator:
+    """The generator an `act` call samples from: `given`, else the controller's `own`; one line for anything else
+    given, which torch refused deep in its sampling ("argument 'generator' must be torch.Generator, not int")."""
+    if given is None:
+        return own
+    check_instance("generator", given, torch.Generator, "a torch.Generator, or None for the controller's own")
+    return given  # type: ignore[return-value]
 
 
 class Controller:
@@ -82,8 +91,8 @@ class Controller:
             self.policy,
             torch.from_numpy(np.ascontiguousarray(planes, dtype=np.uint8)),
             torch.from_numpy(np.ascontiguousarray(received, dtype=np.uint8)),
-            greedy=greedy,
-            generator=generator or self.generator,
+            greedy=check_bool("greedy", greedy),
+            generator=sampling_generator(generator, self.generator),
         )
         m, b = moves.numpy().astype(np.int64), bits.numpy().astype(np.uint8)
         return (m[0], b[0]) if single else (m, b)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from bitcomm.channel.core import index_to_bits
-from bitcomm.config import TaskConfig, check_seed
+from bitcomm.config import TaskConfig, check_bool, check_seed
 from bitcomm.envs.core import N_MOVES
 from bitcomm.errors import ConfigError
 from bitcomm.policies.agent_policies import agent_batch
@@ -162,6 +162,7 @@ class OnnxController:
     def act(self, planes: np.ndarray, received_bits: np.ndarray, greedy: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """`(move, message_bits)`: int64 `()` and uint8 `(K,)` for one agent, `(N,)` and `(N, K)` for a batch."""
         planes, received, single = agent_batch(planes, received_bits, self.task)
+        greedy = check_bool("greedy", greedy)
         move_logits, message_logits = self.logits(planes, received)
         moves = move_logits.argmax(-1).astype(np.int64) if greedy else _categorical(move_logits, self.rng)
         bits = _message_bits(self.messages, message_logits, self.task.channel.bits, greedy, self.rng)
