@@ -13,7 +13,7 @@ from bitcomm.commands.learning_flags import add_learning_flags, learning_overrid
 from bitcomm.commands.train import ENV_CONFIG, GRID_CONFIG
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import RECIPES, TrainConfig, make_train_config
-from bitcomm.learn.env_config import EnvTrainConfig
+from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
 from bitcomm.learn.options import STRUCTURAL, field_default, learning_options
 from bitcomm.policies.networks import ModelConfig
 
@@ -114,9 +114,10 @@ def test_numpy_numbers_are_stored_as_python_ones_so_a_run_can_record_and_seed_th
 
     given = {"seed": np.int64(3), "lr": np.float32(0.5), "num_envs": np.int64(16), "anneal_lr": np.True_}
     cfg = make_train_config("reinforced", hidden=np.int32(8), **given)
-    env_cfg = EnvTrainConfig(env="mpe2.simple_v3:parallel_env", seed=np.uint32(3), lr=np.float32(0.5))
-    values = (cfg.seed, cfg.lr, cfg.num_envs, cfg.anneal_lr, cfg.model.hidden, env_cfg.seed, env_cfg.lr)
-    assert [type(v) for v in values] == [int, float, int, bool, int, int, float]
+    channel = EnvChannelConfig(bits=np.int64(3), flip_prob=np.float32(0.25))
+    env_cfg = EnvTrainConfig(env="mpe2.simple_v3:parallel_env", seed=np.uint32(3), lr=np.float32(0.5), channel=channel)
+    values = (cfg.seed, cfg.lr, cfg.num_envs, cfg.anneal_lr, cfg.model.hidden, env_cfg.seed, env_cfg.lr, channel.bits)
+    assert [type(v) for v in values] == [int, float, int, bool, int, int, float, int]
     json.dumps([cfg.to_dict(), env_cfg.to_dict()])
     torch.Generator().manual_seed(cfg.seed)
 

@@ -35,6 +35,7 @@ class EnvChannelConfig:
 
     def __post_init__(self) -> None:
         """Only what JSON cannot carry is checked here; `BitChannel` checks the values (names, K, delay, p)."""
+        plain_fields(self)
         edges = self.topology
         if not isinstance(edges, str) and not (
             isinstance(edges, (list, tuple))
