@@ -352,6 +352,27 @@ def test_a_policy_of_ones_own_that_answers_what_the_env_cannot_take_is_one_line(
     assert evaluate(_answer(moves=1.0, bits=True), task, episodes=10).episodes == 10  # integral floats, bools: taken
 
 
+@pytest.mark.parametrize(
+    ("env", "channel", "line"),
+    [
+        ({"size": 4}, {"bits": 4}, "invalid task size=4: the policy was trained with size=3"),
+        ({"size": 3}, {"bits": 5}, "invalid task bits=5: the policy was trained with bits=4"),
+        ({"size": 3, "n_agents": 3}, {"bits": 4, "recipients": [[1, 2], [0], [0]]}, "invalid task slots=2"),
+    ],
+)
+def test_a_controller_evaluated_on_a_task_its_inputs_do_not_fit_names_the_task(env, channel, line: str) -> None:
+    """It was `invalid input shapes planes=(20, 2, 4, 4)`: the shapes of a batch, naming neither task."""
+    from bitcomm.policies.controller import Controller
+    from bitcomm.policies.evaluation import evaluate
+    from bitcomm.policies.networks import ModelConfig, PolicyNet
+
+    controller = Controller(PolicyNet(TaskConfig(EnvConfig(size=3), ChannelConfig(bits=4)), ModelConfig()), {})
+    with pytest.raises(ConfigError, match=line):
+        evaluate(controller, TaskConfig(EnvConfig(**env), ChannelConfig(**channel)), episodes=10)
+    played = TaskConfig(EnvConfig(size=3, n_agents=3), ChannelConfig(bits=4, flip_prob=0.1))  # inputs that fit
+    assert evaluate(controller, played, episodes=10).episodes == 10
+
+
 @pytest.mark.parametrize(("bits", "used_mib"), [(16, 854), (18, 2200)])
 def test_training_with_one_hot_messages_is_refused_where_it_would_not_fit_and_only_there(
     bits: int, used_mib: int, monkeypatch: pytest.MonkeyPatch

@@ -170,4 +170,21 @@ def evaluate_controller(
     generator; `task` defaults to the one it was trained on."""
     from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
 
+    if task is not None:
+        check_inputs_fit(task, controller.task)
     return evaluate(BatchedPolicy(ControllerAgent(controller, greedy=greedy)), task or controller.task, episodes, seed)
+
+
+def check_inputs_fit(task: object, trained: TaskConfig) -> None:
+    """One line naming the task where its agents' inputs are not the shape the policy was trained on (the grid's
+    size, the bits, the senders an agent hears), rather than the shapes of a batch the task plays (`invalid input
+    shapes planes=(20, 2, 4, 4)`), which name neither task."""
+    if not isinstance(task, TaskConfig):
+        raise bad_value("task", task, "must be a bitcomm.TaskConfig (the task to play the policy on)")
+    for name, now, was in (
+        ("size", task.env.size, trained.env.size),
+        ("bits", task.channel.bits, trained.channel.bits),
+        ("slots", task.slots, trained.slots),  # the senders an agent hears: its network's message inputs
+    ):
+        if now != was:
+            raise bad_value(f"task {name}", now, f"the policy was trained with {name}={was}, the shape of its inputs")
