@@ -46,9 +46,11 @@ from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.run_folder import (
+    STOP_SIGNALS,
     Logger,
     Progress,
     checkpoint_weights,
+    deaf_children,
     finite_or_stop,
     learner_state,
     oracle_record,
@@ -60,11 +62,6 @@ from bitcomm.learn.run_folder import (
     write_config,
 )
 from bitcomm.policies.denormals import flush_denormals
-
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-"""What `stop_after_batch` takes in the main process: Ctrl-C reaches the whole process group, and so does
-`timeout`'s SIGTERM; a worker they killed mid-batch could die holding the lock that the final save takes."""
-
 
 LOCK_WAIT_S = 30.0
 """How long the main process waits for the shared lock (held for one claim or one optimizer step) before it
@@ -143,20 +140,6 @@ class SharedStep:
     def zero_grad(self, set_to_none: bool = True) -> None:
         for p in self.local:
             p.grad = None
-
-
-@contextlib.contextmanager
-def _deaf_children() -> Iterator[None]:
-    """Processes started inside begin with `STOP_SIGNALS` blocked (a signal mask outlives exec), so that a
-    stop signal cannot kill a worker while it starts, before `_leave_stop_to_main`; here they wait till after."""
-    if not hasattr(signal, "pthread_sigmask"):  # Windows: no process groups to signal
-        yield
-        return
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def _leave_stop_to_main() -> None:
@@ -292,7 +275,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     died: dict[int, int] = {}  # worker -> exit code, of the workers killed (not one that reported an error)
     with stop_after_batch() as stop_asked:  # till the workers are gone: a signal meanwhile is a request
         try:
-            with _deaf_children():
+            with deaf_children():  # till `_leave_stop_to_main`: killed mid-batch, a worker could hold the lock
                 for p in procs:
                     p.start()
             while len(done) < len(procs):
