@@ -48,7 +48,6 @@ from bitcomm.learn.rollout import Collector, Rollout
 from bitcomm.learn.run_folder import (
     Logger,
     Progress,
-    deaf_children,
     finite_or_stop,
     oracle_record,
     prepare,
@@ -60,6 +59,7 @@ from bitcomm.learn.run_folder import (
 )
 from bitcomm.policies.denormals import flush_denormals
 from bitcomm.policies.networks import PolicyNet
+from bitcomm.stop_signals import deaf_children
 
 ACTOR_PREFIX = "bitcomm-rollout"
 """Rollout actors are named `<prefix>-<run token>-<worker>.<generation>` (`ray.util.list_named_actors` lists them)."""

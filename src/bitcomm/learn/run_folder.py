@@ -678,28 +678,6 @@ REPEAT_S = 0.5
 command's process group, which holds the command too; a loaded machine can run the handler in between."""
 
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-"""What `stop_after_batch` takes: Ctrl-C reaches the whole process group, and so does `timeout`'s SIGTERM (a
-scheduler's time limit reaches every process of the job)."""
-
-
-@contextlib.contextmanager
-def deaf_children() -> Iterator[None]:
-    """Processes started inside begin with `STOP_SIGNALS` blocked (a signal mask outlives fork and exec), so that a
-    stop signal sent to the whole process group reaches the trainer alone, which stops them once it has saved: an
-    a3c worker unblocks them once it ignores them (`bitcomm.learn.a3c`); the servers of a private Ray instance keep
-    them blocked until `ray.shutdown` kills them (`bitcomm.learn.ray_backend`), where a group's SIGTERM ended them
-    at once and the driver with them, unsaved, about one stop in three."""
-    if not hasattr(signal, "pthread_sigmask"):  # Windows: no process groups to signal
-        yield
-        return
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
-
-
 @contextlib.contextmanager
 def stop_after_batch() -> Iterator[Callable[[], int | None]]:
     """Ctrl-C or SIGTERM while training asks the loop to stop after the batch it is on, so that the run can
