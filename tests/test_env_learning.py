@@ -6,6 +6,7 @@ acting on it one step later: only the channel can carry it.
 
 from __future__ import annotations
 
+import argparse
 import copy
 import dataclasses
 import errno
@@ -961,6 +962,23 @@ def test_a_finished_env_run_whose_curve_cannot_be_drawn_warns_and_succeeds(
     assert (out / "checkpoints" / "ckpt_000000008.safetensors").is_file()
     assert main(["train", "--resume", "--out", str(out), "--quiet", "--eval-episodes", "0"]) == 0
     assert (out / "learning_curve.png").is_file()
+
+
+def test_an_env_run_without_out_writes_the_folder_the_help_names(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`bitcomm train --help` named only the grid's default folder, runs/<recipe>-..., for --out; a wrapped env's
+    run has no recipe and is written to runs/env-<module>-<estimator>-<messages>-s<seed>."""
+    from bitcomm.cli import build_parser
+
+    monkeypatch.chdir(tmp_path)
+    argv = ["train", "--env", SPEC, "--bits", "2", "--num-envs", "8", "--episodes", "8", "--hidden", "16"]
+    assert main([*argv, "--quiet", "--eval-episodes", "0", "--threads", "1"]) == 0
+    module = __name__.rpartition(".")[2]
+    assert (tmp_path / "runs" / f"env-{module}-improved-bitwise-s0" / "config.json").is_file()
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    help_text = " ".join(sub.choices["train"].format_help().split())
+    assert "with --env runs/env-<module>-<estimator>-<messages>-s<seed>" in help_text
 
 
 def test_resuming_a_grid_run_with_env_says_what_the_run_is(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -173,6 +173,25 @@ def test_a_killed_worker_is_one_config_error_not_a_hang() -> None:
     assert not any(p.is_alive() for p in procs)
 
 
+def test_workers_leave_the_stop_signals_to_the_learner_and_close_still_ends_them() -> None:
+    """`timeout` and a scheduler signal the whole process group: the learner stops after its batch and saves it,
+    so its workers must live to finish that batch (before, SIGTERM killed them: the batch was lost, and the run
+    ended blaming the env, "env worker 0 of 1 ... died (exit code -15); --env-workers 0 ... shows its own error")."""
+    cfg = config(env=MPE, num_envs=4)
+    vec = make_vec(cfg, cfg.num_envs, workers=2)
+    procs = list(vec.procs)
+    try:
+        vec.reset(np.arange(4))
+        for proc in procs:
+            os.kill(proc.pid, signal.SIGTERM)
+            os.kill(proc.pid, signal.SIGINT)
+        step = within_timeout(vec.step, np.zeros((4, 2), np.int64), np.zeros((4, 2, 2), np.uint8))
+        assert len(step.ended) == 4 and all(p.is_alive() for p in procs)
+    finally:
+        within_timeout(vec.close)
+    assert not any(p.is_alive() for p in procs)
+
+
 def test_a_run_whose_worker_dies_saves_what_it_learned_and_resumes_as_if_never_stopped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

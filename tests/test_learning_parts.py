@@ -469,6 +469,22 @@ def test_a_message_head_of_its_own_is_the_only_one_with_a_width_to_set() -> None
         ModelConfig(sender_hidden=32)
 
 
+@pytest.mark.parametrize(
+    ("options", "refusal"),
+    [
+        ({"held_out_episodes": 500}, "held-out-episodes=500: acts only with --held-out-every > 0; leave it at 1000"),
+        ({"held_out_greedy": False}, "held-out-greedy=False: acts only with --held-out-every > 0; leave it on"),
+        ({"map_lr": 0.05}, "map-lr=0.05: acts only with --message-map; leave it at 0.01"),
+    ],
+)
+def test_an_option_nothing_reads_in_its_run_is_refused_not_ignored(options, refusal):
+    """The held-out evaluation's size and play act only where it is played, the map decoder's rate only where
+    there is a map (before, `--map-lr 0.05` under the default recipe trained exactly as without it)."""
+    with pytest.raises(ConfigError, match=refusal):
+        make_train_config("reinforced", TINY, **options)
+    make_train_config("reinforced", TINY, held_out_every=64, message_map=True, **options)  # where they act
+
+
 @pytest.mark.parametrize("clip", [0.0, 0.2])
 def test_the_policy_gradient_term_reads_its_minibatch_s_own_steps(clip):
     """A minibatch is a shuffled subset of the batch's episodes, and the term works on its valid steps alone: each

@@ -328,10 +328,13 @@ def check_episodes(episodes: int) -> int:
 
 
 class HelpFormatter(argparse.HelpFormatter):
-    """Shows every flag's default: help that names no default gets "(default: X)" appended."""
+    """Shows every flag's default: help that names no default gets "(default: X)" appended. A switch (default
+    False) and a flag without one (None) show none; 0 and 0.0 are defaults (`in (None, False)` took them for False:
+    --flip-prob, --drop-prob, --act-fail-prob and --act-delay showed none)."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        if "default" in text.lower() or action.default in (None, False, argparse.SUPPRESS) or not action.option_strings:
+        none = any(action.default is value for value in (None, False, argparse.SUPPRESS))
+        if "default" in text.lower() or none or not action.option_strings:
             return text
         return f"{text} (default: %(default)s)".strip()

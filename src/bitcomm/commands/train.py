@@ -64,7 +64,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--seed", type=SEED, default=None, help="default 0")
     p.add_argument(
-        "--out", type=out_dir, default=None, help="run folder (default runs/<recipe>-<estimator>-<messages>-s<seed>)"
+        "--out",
+        type=out_dir,
+        default=None,
+        help="run folder (default runs/<recipe>-<estimator>-<messages>-s<seed>; with --env "
+        "runs/env-<module>-<estimator>-<messages>-s<seed>, <module> the last part of the env's module)",
     )
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its latest checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -6,7 +6,8 @@ the per-copy work, dicts to arrays, is `VecEnv`'s own and the results are the sa
 reset with seed b and stepped with row b of the actions wherever it lives. The pipes carry numpy arrays:
 the seeds, actions and messages of a worker's rows out, the rows of `VecObservation` and `VecStep` back; the
 workers step their shares at the same time. Workers start with `spawn` (no fork of a process holding torch
-threads), ignore Ctrl-C (the learner's `close()` stops them), and exit when their pipe closes. A worker that
+threads), ignore Ctrl-C and SIGTERM (`bitcomm.stop_signals`: the learner stops after its batch, saves it, and its
+`close()` stops them), and exit when their pipe closes. A worker that
 dies is one `WorkerDied` (a `ConfigError`) naming it and the env, never a hang; an exception raised in a worker
 is raised here with the worker's traceback.
 """
@@ -14,7 +15,6 @@ is raised here with the worker's traceback.
 from __future__ import annotations
 
 import multiprocessing as mp
-import signal
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -26,9 +26,10 @@ from pettingzoo import ParallelEnv
 
 from bitcomm.envs.vector import EnvLayout, VecEnv, VecObservation, VecStep
 from bitcomm.errors import ConfigError, bad_value, check_int
+from bitcomm.stop_signals import deaf_children, ignore_stop_signals
 
 CLOSE_SECONDS = 5.0
-"""How long `close()` waits for a worker to close its copies before it terminates it."""
+"""How long `close()` waits for a worker to close its copies before it kills it."""
 
 
 class WorkerDied(ConfigError):
@@ -47,7 +48,7 @@ class WorkerError(NamedTuple):
 def _work(conn: Connection, make: Callable[[], ParallelEnv], count: int) -> None:
     """A worker's loop: build a `VecEnv` of `count` copies, then answer `reset` and `step` until `close` or
     until the learner's end of the pipe is gone."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ignore_stop_signals()
     try:
         vec = VecEnv(make, count)
     except Exception as err:
@@ -119,7 +120,8 @@ class SubprocVecEnv(VecEnv):
                 proc = ctx.Process(
                     target=_work, args=(child, make, share.stop - share.start), name=f"bitcomm-env-{w}", daemon=True
                 )
-                proc.start()
+                with deaf_children():  # till `_work` ignores them: a group's SIGTERM killed it mid-batch
+                    proc.start()
                 child.close()  # only the worker holds its end, so its death reads as EOF here
                 self.conns.append(parent)
                 self.procs.append(proc)
@@ -160,8 +162,8 @@ class SubprocVecEnv(VecEnv):
                         conn.recv()  # a reply left unread (another worker failed first): the worker can go on
                 except (EOFError, OSError):
                     proc.join(0.05)
-            if proc.is_alive():
-                proc.terminate()
+            if proc.is_alive():  # it ignores SIGTERM
+                proc.kill()
             proc.join()
             conn.close()
         self.conns, self.procs = [], []

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import queue as queue_mod
-import signal
 import time
 import traceback
 from collections.abc import Iterator, Sequence
@@ -60,11 +59,7 @@ from bitcomm.learn.run_folder import (
     write_config,
 )
 from bitcomm.policies.denormals import flush_denormals
-
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-"""What `stop_after_batch` takes in the main process: Ctrl-C reaches the whole process group, and so does
-`timeout`'s SIGTERM; a worker they killed mid-batch could die holding the lock that the final save takes."""
-
+from bitcomm.stop_signals import deaf_children, ignore_stop_signals
 
 LOCK_WAIT_S = 30.0
 """How long the main process waits for the shared lock (held for one claim or one optimizer step) before it
@@ -145,28 +140,6 @@ class SharedStep:
             p.grad = None
 
 
-@contextlib.contextmanager
-def _deaf_children() -> Iterator[None]:
-    """Processes started inside begin with `STOP_SIGNALS` blocked (a signal mask outlives exec), so that a
-    stop signal cannot kill a worker while it starts, before `_leave_stop_to_main`; here they wait till after."""
-    if not hasattr(signal, "pthread_sigmask"):  # Windows: no process groups to signal
-        yield
-        return
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
-
-
-def _leave_stop_to_main() -> None:
-    """In a worker: ignore `STOP_SIGNALS`; the main process stops it after its batch (or kills it)."""
-    for s in STOP_SIGNALS:
-        signal.signal(s, signal.SIG_IGN)
-    if hasattr(signal, "pthread_sigmask"):
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)  # a signal pending from the start is dropped
-
-
 @torch.no_grad()
 def pull(local: Sequence[torch.Tensor], shared: Sequence[torch.Tensor]) -> None:
     for lp, sp in zip(local, shared, strict=True):
@@ -185,7 +158,7 @@ def _worker(
     formed: Any,
     stop: Any,
 ) -> None:
-    _leave_stop_to_main()
+    ignore_stop_signals()
     try:
         from bitcomm.learn.learner import Learner
         from bitcomm.learn.rollout import Collector
@@ -292,7 +265,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     died: dict[int, int] = {}  # worker -> exit code, of the workers killed (not one that reported an error)
     with stop_after_batch() as stop_asked:  # till the workers are gone: a signal meanwhile is a request
         try:
-            with _deaf_children():
+            with deaf_children():  # till `ignore_stop_signals`: killed mid-batch, a worker could hold the lock
                 for p in procs:
                     p.start()
             while len(done) < len(procs):
@@ -351,7 +324,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
             for p in procs:
                 if p.pid is None:  # never started (start() itself failed)
                     continue
-                if p.is_alive():  # after an error or a second signal: it ignores SIGTERM (`_leave_stop_to_main`)
+                if p.is_alive():  # after an error or a second signal: it ignores SIGTERM (`ignore_stop_signals`)
                     p.kill()
                 p.join(timeout=5)
             bar.close()

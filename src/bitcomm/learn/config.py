@@ -299,6 +299,7 @@ class TrainConfig:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
         for name in ("lr", "critic_lr", "map_lr"):
             check_rate(name, getattr(self, name))
+        self._check_idle_options()
         check_number("max_grad_norm", self.max_grad_norm, 0.0, strict=True)
         if not (is_number(self.gamma) and 0.0 < self.gamma <= 1.0):
             raise bad_value("gamma", self.gamma, "must be in (0, 1]")
@@ -326,6 +327,20 @@ class TrainConfig:
                 self.channel_noise,
                 "acts only where the goal loss reaches the sender (goal-coef > 0 with --no-message-map); leave it at 1",
             )
+
+    def _check_idle_options(self) -> None:
+        """One line for an option given another value than its default where nothing reads it: the held-out
+        evaluation's size and play without `held_out_every`, the map decoder's rate without `message_map`."""
+        idle = {
+            "held_out_episodes": ("--held-out-every > 0", not self.held_out_every),
+            "held_out_greedy": ("--held-out-every > 0", not self.held_out_every),
+            "map_lr": ("--message-map", not self.model.message_map),
+        }
+        for name, (needs, unread) in idle.items():
+            value, default = getattr(self, name), TrainConfig.__dataclass_fields__[name].default
+            if unread and value != default:
+                leave = ("on" if default else "off") if isinstance(default, bool) else f"at {default:g}"
+                raise bad_value(name.replace("_", "-"), value, f"acts only with {needs}; leave it {leave}")
 
     def _check_greedy_senders(self) -> None:
         """`greedy_senders` and `held_messages`, the two ways of sending a batch's episodes other than sampling."""

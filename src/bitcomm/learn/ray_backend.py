@@ -59,6 +59,7 @@ from bitcomm.learn.run_folder import (
 )
 from bitcomm.policies.denormals import flush_denormals
 from bitcomm.policies.networks import PolicyNet
+from bitcomm.stop_signals import deaf_children
 
 ACTOR_PREFIX = "bitcomm-rollout"
 """Rollout actors are named `<prefix>-<run token>-<worker>.<generation>` (`ray.util.list_named_actors` lists them)."""
@@ -217,8 +218,10 @@ def _candidates(host: str) -> Iterator[str]:
 def connect(address: str | None, workers: int) -> bool:
     """Join the cluster at `address`, shipping this bitcomm package to its workers (Ray's `py_modules`: the
     nodes need its dependencies, not bitcomm); None: a Ray already started in this process, else a new local
-    instance with a CPU per actor. Returns whether this call started Ray; one line if no cluster answers or it is too
-    small (`bitcomm.learn.run.train` has checked the address with `check_address` before making the run folder)."""
+    instance with a CPU per actor, whose servers (in the driver's process group) are deaf to the stop signals the
+    driver takes (`deaf_children`), so that the driver can save. Returns whether this call started Ray; one line if no
+    cluster answers or it is too small (`bitcomm.learn.run.train` has checked the address with `check_address`
+    before making the run folder)."""
     import ray
 
     import bitcomm
@@ -228,7 +231,10 @@ def connect(address: str | None, workers: int) -> bool:
         try:
             if address is None:
                 cpus = max(workers, os.cpu_count() or 1)
-                ray.init("local", num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False)
+                with deaf_children():
+                    ray.init(
+                        "local", num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False
+                    )
             else:
                 code = {"py_modules": [str(Path(bitcomm.__file__).parent)]}
                 ray.init(address, runtime_env=code, log_to_driver=False, configure_logging=False)
