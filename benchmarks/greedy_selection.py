@@ -53,7 +53,7 @@ def _config(args: dict[str, Any], seed: int) -> Any:
         seed=seed,
         episodes=args["episodes"],
         held_out_every=args["held_out_every"],
-        held_out_episodes=args["held_out_episodes"],
+        held_out_episodes=args["held_out_episodes"] if args["held_out_every"] else None,  # read only with a set
         train_max_steps=args.get("train_max_steps"),  # None: the recipe's cut
         keep_checkpoints=1,
         **dict(args.get("set", ())),
