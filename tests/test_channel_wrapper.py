@@ -143,6 +143,16 @@ def test_seeded_reproducible_and_different_with_another_seed() -> None:
     assert not np.array_equal(heard(None), heard(None))  # no seed at all: fresh noise
 
 
+def test_a_numpy_seed_seeds_as_the_int_it_is() -> None:
+    """A seed from a numpy array (a sweep's) reached the inner env as it was: gymnasium's seeding, which MPE2 uses,
+    refused it in a traceback ("Seed must be a python integer"). It seeds both as the int it is."""
+    for ctor, reset in ((None, np.int64(2)), (np.int64(2), None)):
+        a, b = BitChannel(INNER["speaker_listener"](), seed=ctor), BitChannel(INNER["speaker_listener"](), seed=2)  # type: ignore[arg-type]
+        obs_a, _ = a.reset(seed=reset)  # type: ignore[arg-type]
+        obs_b, _ = b.reset(seed=None if reset is None else 2)
+        assert all(np.array_equal(obs_a[k]["observation"], obs_b[k]["observation"]) for k in obs_b)
+
+
 def test_spaces_and_attributes() -> None:
     inner = INNER["speaker_listener"]()
     env = BitChannel(inner, bits=3, topology=[("speaker_0", "listener_0")], fixed_actions={"speaker_0": 0})
