@@ -10,6 +10,7 @@ accepts (those are not run). `KNOWN` adds the cross-flag cases of issue 20.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import os
@@ -489,3 +490,17 @@ def test_a_small_batch_takes_the_recipes_minibatches_down_with_it() -> None:
         ["train", "--env", "mpe2.simple_speaker_listener_v4:parallel_env", "--num-envs", "2"]
     )
     assert env_config_from_args(args).minibatches == 2
+
+
+@pytest.mark.parametrize("command", ["eval", "render", "analyze", "sweep", "variance", "deploy", "baseline", "train"])
+def test_the_help_of_a_command_that_plays_a_run_says_a_run_plays_its_own_task(
+    command: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`eval --help` gave `--size (default 10)`, `--bits (default 7)`, ... while `eval RUN` plays the run's own task
+    where no flag is typed (a 4x4 run plays 4x4): the commands that read a run say so above their task flags."""
+    from bitcomm.commands.common import RUN_TASK
+
+    with contextlib.suppress(SystemExit):  # argparse's exit after help, which main takes for some commands
+        main([command, "--help"])
+    said = " ".join(capsys.readouterr().out.split())
+    assert (" ".join(RUN_TASK.split()) in said) is (command not in ("baseline", "train"))

@@ -45,7 +45,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=SEED, default=0, help="seed of play and of the decoder's split (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the summary figures as one JSON object")
     add_threads_flag(p)
-    add_task_flags(p)
+    add_task_flags(p, reads_runs=True)
     add_policy_flags(p)
     p.set_defaults(run=run)
 

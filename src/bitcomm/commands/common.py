@@ -31,10 +31,19 @@ def _groups(text: str) -> tuple[tuple[int, ...], ...]:
     return tuple(_int_list(group) for group in text.split(";"))
 
 
-def add_task_flags(parser: argparse.ArgumentParser) -> None:
-    """Every environment and channel parameter of SPEC sections 1 and 2, with its default."""
+RUN_TASK = (
+    "A run (or an exported policy) is played on its own task: a flag typed changes that option alone (the defaults "
+    "shown serve the oracle and random policies)."
+)
+"""The task group's description in a command that reads a run (`resolve_task`), whose help gave the grid's defaults
+as if they were what `eval RUN` plays."""
+
+
+def add_task_flags(parser: argparse.ArgumentParser, reads_runs: bool = False) -> None:
+    """Every environment and channel parameter of SPEC sections 1 and 2, with its default (`reads_runs`: a command
+    that plays a run's own task where no flag is typed, which its help then says)."""
     env, ch = EnvConfig(), ChannelConfig()
-    g = parser.add_argument_group("task (environment and channel)")
+    g = parser.add_argument_group("task (environment and channel)", RUN_TASK if reads_runs else None)
     g.add_argument("--size", type=integer(2, MAX_SIZE), default=env.size, help="grid side (default %(default)s)")
     g.add_argument(
         "--agents", type=integer(2, MAX_AGENTS), default=env.n_agents, help="number of agents (default %(default)s)"

@@ -63,7 +63,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "on 1 thread whatever this says (it acts on one observation at a time, and the agents already take a core "
         "each)",
     )
-    add_task_flags(p)
+    add_task_flags(p, reads_runs=True)
     add_policy_flags(p, onnx=True)
     p.set_defaults(run=run)
 

@@ -23,7 +23,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--greedy", action="store_true", help="most likely move and message instead of sampling")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     add_threads_flag(p)
-    add_task_flags(p)
+    add_task_flags(p, reads_runs=True)
     mark_task_defaults(p)
     p.set_defaults(run=run)
 

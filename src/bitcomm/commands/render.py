@@ -44,7 +44,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="frames per second of the GIF (default %(default)s)",
     )
     add_threads_flag(p, "; only a trained RUN plays on torch: the oracle and random policies never load it")
-    add_task_flags(p)
+    add_task_flags(p, reads_runs=True)
     add_policy_flags(p)
     p.set_defaults(run=run)
 

@@ -42,7 +42,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true", help="print the points as one JSON list")
     add_threads_flag(p)
-    add_task_flags(p)
+    add_task_flags(p, reads_runs=True)
     add_policy_flags(p, several=True)
     p.set_defaults(run=run)
 

@@ -80,7 +80,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true", help="print the rows as one JSON list")
     add_threads_flag(p)
-    add_task_flags(p)
+    add_task_flags(p, reads_runs=True)
     mark_task_defaults(p)
     p.set_defaults(run=run)
 
