@@ -56,7 +56,7 @@ from bitcomm.errors import ConfigError, bad_value, check_int, plural
 from bitcomm.files import write_atomic, write_text_atomic
 from bitcomm.learn.options import Option, learning_options
 from bitcomm.learn.recipes import DEFAULT_RECIPE
-from bitcomm.learn.resume_rules import flat
+from bitcomm.learn.resume_rules import SAVING, flat
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policies.source import TASK_FLAGS
 from bitcomm.stats import mean_interval
@@ -90,8 +90,9 @@ EVALUATION = "evaluation.json"
 PLAYS = ("sampled", "greedy", "cut")
 """How each run is measured: sampling, the most likely action and message, and sampling with the channel cut
 (every message dropped)."""
-RESUMABLE = ("episodes", "checkpoint_seconds", "keep_checkpoints", "env_workers")
-"""Config fields a finished or partial run may differ in from the study and still count as its run."""
+RESUMABLE = ("episodes", *SAVING, "env_workers")
+"""Config fields a finished or partial run may differ in from the study and still count as its run: those of
+`RESUME_MAY_CHANGE` that a study's runs can differ in (a study picks the backend and workers of all of them)."""
 STUDY_EPISODES = 60_000
 """The default budget of every run: on the default task, improved + bitwise under `reinforced` is below
 2x the oracle after 27,000-39,000 episodes and its rolling mean near 1.25x after 60,000 (docs/tuning.md, session 8), so
