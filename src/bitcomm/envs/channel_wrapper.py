@@ -132,8 +132,9 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         self.metadata = dict(getattr(env, "metadata", {}))
         self.metadata["name"] = f"{self.metadata.get('name', type(env).__name__)}_bitchannel"
         self.render_mode = getattr(env, "render_mode", None)
-        self._first_seed = None if seed is None else int(seed)  # used by the first reset() if it is given no seed
-        self._channel = self._new_channel(None if seed is None else channel_seed(int(seed)))
+        first = None if seed is None else int(seed)  # a numpy integer as the int it is, which gymnasium's seeding takes
+        self._first_seed = first  # used by the first reset() if it is given no seed
+        self._channel = self._new_channel(None if first is None else channel_seed(first))
         # who was live when each message in flight was sent: the same delay queue, noise-free, one bit
         self._alive = Channel(ChannelConfig(bits=1, delay=self.delay), self.slot_senders, num_envs=1)
         self._n = n
@@ -157,7 +158,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         seed = self._first_seed if seed is None else int(seed)  # a numpy integer, which gymnasium's seeding refuses
         self._first_seed = None
         if seed is not None:
-            self._channel = self._new_channel(channel_seed(int(seed)))
+            self._channel = self._new_channel(channel_seed(seed))
         else:
             self._channel.reset()
         self._alive.reset()
