@@ -16,6 +16,8 @@ from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent, Orac
 from bitcomm.policies.evaluation import evaluate
 from bitcomm.policies.reference import OraclePolicy
 from bitcomm.policies.source import (
+    CRITIC_INPUTS,
+    POLICY_INPUTS,
     PolicySource,
     add_policy_flags,
     given_task_flags,
@@ -79,11 +81,13 @@ def test_only_typed_task_flags_change_the_base_task() -> None:
     assert task.channel == ChannelConfig(bits=4, delay=2, flip_prob=0.1)
     # a typed value equal to the default still counts as typed
     assert resolve_task(parse(["--size", "10", "--bits", "7"]), base).env.size == 10
-    with pytest.raises(ConfigError, match="size"):
-        resolve_task(parse(["--size", "10"]), base, strict=True)
-    # a network's input shape is refused by the flag typed, not by the config's field (n_agents)
+    with pytest.raises(ConfigError, match=r"^invalid size=10: RUN was trained with size=4$"):
+        resolve_task(parse(["--size", "10"]), base, fixed=POLICY_INPUTS)
+    # one policy network acts for every agent: a ring of 3 where each hears one sender, as in training, is playable
+    assert resolve_task(parse(["--agents", "3"]), base, fixed=POLICY_INPUTS).env.n_agents == 3
+    # the critics see every agent: their input shape is refused by the flag typed, not by the config's field (n_agents)
     with pytest.raises(ConfigError, match=r"^invalid agents=3: RUN was trained with agents=2$"):
-        resolve_task(parse(["--agents", "3"]), base, strict=True)
+        resolve_task(parse(["--agents", "3"]), base, fixed=CRITIC_INPUTS)
     # for reference policies the base is the paper's task, so the flags mean what they say
     assert PolicySource("oracle").task_from_args(parse([])) == TaskConfig()
     assert type(PolicySource("oracle").task_from_args(parse([])).env.size) is int

@@ -256,13 +256,24 @@ def test_eval_refuses_a_task_whose_agents_hear_another_number_of_senders() -> No
     """The senders an agent hears are its network's message inputs: another count is one line naming the flag."""
     import argparse
 
-    from bitcomm.policies.source import resolve_task
+    from bitcomm.policies.source import POLICY_INPUTS, resolve_task
 
     base = TaskConfig(EnvConfig(size=4, n_agents=3), ChannelConfig(bits=4, recipients=((1, 2), (0, 2), (0, 1))))
     args = argparse.Namespace(recipients=((1,), (2,), (0,)))
     with pytest.raises(ConfigError, match=r"invalid recipients=.*trained to hear 2 sender\(s\) per agent"):
-        resolve_task(args, base, strict=True)
+        resolve_task(args, base, fixed=POLICY_INPUTS)
     assert resolve_task(args, base).slots == 1  # a resume or a command that does not load the network may
+
+
+def test_one_network_acts_for_any_number_of_agents_but_the_critics_see_how_many(run: Path, capsys) -> None:
+    """A 2-agent policy plays a ring of 3 (each agent hears one sender, as in training): `eval` and the commands that
+    act take `--agents 3`; `variance`, whose critics see every agent, refuses it in one line."""
+    assert main(["eval", str(run), "--agents", "3", "--episodes", "20", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["episodes"] == 20
+    rc, _ = cli(capsys, "render", str(run), "--agents", "3", "--out", str(run / "three.gif"), "--seed", "1")
+    assert rc == 0 and (run / "three.gif").stat().st_size > 0
+    refused(capsys, "variance", str(run), "--agents", "3", naming="invalid agents=3: checkpoint")
+    refused(capsys, "eval", str(run), "--size", "5", naming="invalid size=5: RUN")
 
 
 # ---------------------------------------------------------------------------------------------- lock

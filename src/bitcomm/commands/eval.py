@@ -1,8 +1,10 @@
 """`bitcomm eval RUN_OR_CHECKPOINT`: measure a trained policy, with the JSON keys of `bitcomm baseline`.
 
 The task is the one the policy was trained on; task flags typed on the command line change it, so a
-policy trained clean can be measured under noise, drops or delay (grid size, agents and bits must
-match the network). Acting goes through `bitcomm.Controller`, as a deployed robot would.
+policy trained clean can be measured under noise, drops or delay. Grid size and bits must match the network, and
+each agent must hear as many senders as in training; the number of agents may change, since one network acts for
+each of them (a policy trained by 2 may play a ring of 3). Acting goes through `bitcomm.Controller`, as a deployed
+robot would.
 """
 
 from __future__ import annotations
@@ -33,13 +35,13 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.learn.env_run import env_run_config
     from bitcomm.policies.controller import Controller
     from bitcomm.policies.evaluation import evaluate_controller
-    from bitcomm.policies.source import resolve_task
+    from bitcomm.policies.source import POLICY_INPUTS, resolve_task
 
     use_threads(args)
     if env_run_config(args.run_path) is not None:
         return env_train.evaluate(args)
     controller = Controller.load(args.run_path, seed=args.seed)
-    task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", strict=True)
+    task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", fixed=POLICY_INPUTS)
     check_eval(task, args.episodes, onehot=controller.messages == "onehot")
     result = evaluate_controller(controller, args.episodes, args.seed, args.greedy, task)
     print_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")

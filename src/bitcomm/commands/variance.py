@@ -124,7 +124,7 @@ def check_one_task(files: list[Path], tasks: list[TaskConfig]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from bitcomm.policies.source import resolve_task
+    from bitcomm.policies.source import CRITIC_INPUTS, resolve_task
     from bitcomm.studies.variance import (
         load_stage,
         markdown_table,
@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     check_once(files)
     loaded = [load_stage(f) for f in files]  # each read once: its task checked here, its policy measured below
     tasks = [
-        resolve_task(args, s.config.task, label=f"checkpoint {str(f)!r}", strict=True)
+        resolve_task(args, s.config.task, label=f"checkpoint {str(f)!r}", fixed=CRITIC_INPUTS)
         for f, s in zip(files, loaded, strict=True)
     ]
     check_one_task(files, tasks)

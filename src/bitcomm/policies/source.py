@@ -43,7 +43,12 @@ TASK_FLAGS: dict[str, tuple[str, str]] = {
     "flip_prob": ("channel", "flip_prob"),
     "drop_prob": ("channel", "drop_prob"),
 }
-INPUT_SHAPE_FLAGS = ("size", "agents", "bits")  # a trained network cannot take other values
+POLICY_INPUTS = ("size", "bits")
+"""The task flags a trained policy network cannot take other values of. It is shared by every agent and does not know
+their number (`bitcomm.Controller`), so a policy trained by 2 may play a ring of 3 where each agent hears as many
+senders as in training (`resolve_task` checks that too)."""
+CRITIC_INPUTS = (*POLICY_INPUTS, "agents")
+"""Those of the critics too: they see every agent, and which one is theirs (`bitcomm.commands.variance` runs them)."""
 
 
 class _DefaultInt(int):
@@ -79,20 +84,23 @@ def given_task_flags(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
-def resolve_task(args: argparse.Namespace, base: TaskConfig, label: str = "RUN", strict: bool = False) -> TaskConfig:
-    """`base` with the task flags the user gave applied; `strict` refuses a different input shape."""
+def resolve_task(
+    args: argparse.Namespace, base: TaskConfig, label: str = "RUN", fixed: tuple[str, ...] = ()
+) -> TaskConfig:
+    """`base` with the task flags the user gave applied; for a trained network, `fixed` (`POLICY_INPUTS` or
+    `CRITIC_INPUTS`) names the flags it cannot take another value of, and the senders each agent hears must stay."""
     given = given_task_flags(args)
     changes: dict[str, dict[str, Any]] = {"env": {}, "channel": {}}
     for dest, value in given.items():
         part, name = TASK_FLAGS[dest]
-        if strict and dest in INPUT_SHAPE_FLAGS and value != getattr(getattr(base, part), name):
+        if dest in fixed and value != getattr(getattr(base, part), name):
             flag = dest.replace("_", "-")  # the flag typed (--agents), not the config's field (n_agents)
             raise bad_value(flag, value, f"{label} was trained with {flag}={getattr(getattr(base, part), name)}")
         changes[part][name] = value
     env: EnvConfig = dataclasses.replace(base.env, **changes["env"])
     channel: ChannelConfig = dataclasses.replace(base.channel, **changes["channel"])
     task = TaskConfig(env, channel)
-    if strict and task.slots != base.slots:  # the senders an agent hears are its network's message inputs too
+    if fixed and task.slots != base.slots:  # the senders an agent hears are its network's message inputs too
         flag = "recipients" if "recipients" in given else "observes"
         raise bad_value(
             flag,
@@ -176,8 +184,8 @@ class PolicySource:
 
     def task_from_args(self, args: argparse.Namespace) -> TaskConfig:
         """The task to run: `base_task()` changed by the task flags the user gave."""
-        learned = self.name in ("run", "onnx")
-        return resolve_task(args, self.base_task(), label=f"{self.name.upper()} {self.label!r}", strict=learned)
+        fixed = POLICY_INPUTS if self.name in ("run", "onnx") else ()  # a learned network's inputs
+        return resolve_task(args, self.base_task(), label=f"{self.name.upper()} {self.label!r}", fixed=fixed)
 
     def build(self, task: TaskConfig, seed: int | np.random.SeedSequence | None = None) -> AgentPolicy:
         """The policy, for `task`; `seed` drives a random policy's draws and a learned policy's sampling.
