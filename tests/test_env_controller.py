@@ -154,6 +154,15 @@ def counted_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run
 
 
+def test_training_leaves_the_callers_torch_generator_as_it_was(tmp_path: Path) -> None:
+    """A notebook's own draws after `train_env` are those it would have made without it (the run seeds torch)."""
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    train_env(config(env=f"{MODULE}:CountedEnv", episodes=8), tmp_path / "run", progress=False)
+    assert torch.equal(torch.rand(3), expected)
+
+
 def test_an_episode_count_or_seed_evaluation_cannot_play_is_one_line(counted_run: Path) -> None:
     """0 episodes were an IndexError from an empty batch, a negative seed numpy's "expected non-negative integer"
     (the grid's `evaluate` and `bitcomm eval` named both already)."""

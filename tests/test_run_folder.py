@@ -276,6 +276,18 @@ def test_one_network_acts_for_any_number_of_agents_but_the_critics_see_how_many(
     refused(capsys, "eval", str(run), "--size", "5", naming="invalid size=5: RUN")
 
 
+@pytest.mark.parametrize("mode", ["sync", "a3c"])
+def test_training_leaves_the_callers_torch_generator_as_it_was(mode: str, tmp_path: Path) -> None:
+    """A notebook's own draws after `train` are those it would have made without it (the run seeds torch)."""
+    from bitcomm.learn.run import train
+
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    train(tiny_config(mode=mode, workers=1), tmp_path / "run", progress=False)
+    assert torch.equal(torch.rand(3), expected)
+
+
 # ---------------------------------------------------------------------------------------------- lock
 def test_a_second_writer_is_refused_with_the_holders_pid(run: Path, tmp_path: Path, capsys) -> None:
     fresh = tmp_path / "fresh"

@@ -60,7 +60,8 @@ def train(
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ConfigError(f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})") from None
-    with run_lock(out), flush_denormals(), stops_in_one_line(out):
+    # the run seeds torch's global generator (weights, and noise that may draw from it); the caller's comes back after
+    with run_lock(out), flush_denormals(), stops_in_one_line(out), torch.random.fork_rng(devices=[]):
         if cfg.backend == "ray":
             from bitcomm.learn.ray_backend import train_ray
 
