@@ -7,6 +7,7 @@ import argparse
 
 import numpy as np
 import pytest
+import torch
 
 from bitcomm.commands.common import add_task_flags
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
@@ -109,3 +110,19 @@ def test_run_that_cannot_be_loaded_is_one_error_line() -> None:
     """A RUN that is not a run folder or checkpoint: one ConfigError naming it, not a traceback."""
     with pytest.raises(ConfigError, match="cannot load RUN 'runs/none'"):
         PolicySource("run", "runs/none").base_task()
+
+
+def test_a_controller_evaluated_twice_with_one_seed_gives_one_figure_and_keeps_its_own_generator() -> None:
+    """`evaluate(controller, seed=s)` samples by `s`, as `bitcomm eval --seed s` of the saved run does: a rerun notebook
+    cell gives the same figure, and the controller's own sampling goes on where it was."""
+    from bitcomm.policies.controller import Controller
+    from bitcomm.policies.networks import ModelConfig, PolicyNet
+
+    task = TaskConfig(EnvConfig(size=3, max_steps=20), ChannelConfig(bits=4))
+    controller = Controller(PolicyNet(task, ModelConfig()), {}, seed=7)
+    own = controller.generator.get_state()
+    first, again = (evaluate(controller, episodes=40, seed=3) for _ in range(2))
+    assert first == again
+    assert torch.equal(controller.generator.get_state(), own)
+    fresh = Controller(controller.policy, {}, seed=3)  # what `Controller.load(run, seed=3)` starts with
+    assert evaluate(BatchedPolicy(ControllerAgent(fresh)), task, episodes=40, seed=3) == first

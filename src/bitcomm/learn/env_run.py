@@ -59,7 +59,7 @@ def train_env(cfg: EnvTrainConfig, out: str | Path, resume: bool = False, progre
             raise ConfigError(
                 f"invalid out={str(out)!r}: cannot create the run folder ({err.strerror or err})"
             ) from None
-        # the run seeds torch's global generator (weights, and noise that may draw from it); the caller's comes back after
+        # the run seeds torch's global generator (weights, noise that may draw from it); the caller's comes back after
         with run_lock(out), flush_denormals(), stops_in_one_line(out), torch.random.fork_rng(devices=[]):
             return _train(cfg, vec, out, resume, progress)
 

@@ -136,8 +136,8 @@ def evaluate(
     """Mean episode length (95% interval), mean team return and success rate over a seeded set.
 
     `policy` is a batched `Policy` (an `Observation` in, `(B, n)` moves and `(B, n, K)` bits out) or a trained
-    `bitcomm.Controller`, which samples from its own generator (`evaluate_controller` plays it greedily) and
-    brings its task: `evaluate(Controller.load("runs/demo"))`. Any other policy needs `task`."""
+    `bitcomm.Controller`, which samples by `seed` (`evaluate_controller` plays it greedily) and brings its task:
+    `evaluate(Controller.load("runs/demo"))`. Any other policy needs `task`."""
     check_evaluation(episodes, seed)
     if not callable(policy):
         from bitcomm.policies.controller import Controller
@@ -166,13 +166,17 @@ def evaluate_checkpoint(
 def evaluate_controller(
     controller: Controller, episodes: int, seed: int, greedy: bool = False, task: TaskConfig | None = None
 ) -> EvalResult:
-    """`evaluate` for a `bitcomm.Controller` (loaded, or wrapping a policy in training), sampling from its own
-    generator; `task` defaults to the one it was trained on."""
+    """`evaluate` for a `bitcomm.Controller` (loaded, or wrapping a policy in training); `task` defaults to the one it
+    was trained on. It samples from a generator seeded by `seed`, as `Controller.load(path, seed)` starts, not from the
+    controller's own: the figure is a function of the policy and `seed`, the same each time a notebook cell reruns,
+    and the controller's generator goes on where it was."""
     from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
+    from bitcomm.policies.controller import Controller
 
     if task is not None:
         check_inputs_fit(task, controller.task)
-    return evaluate(BatchedPolicy(ControllerAgent(controller, greedy=greedy)), task or controller.task, episodes, seed)
+    seeded = Controller(controller.policy, controller.config, seed, controller.info)  # the same network, shared
+    return evaluate(BatchedPolicy(ControllerAgent(seeded, greedy=greedy)), task or controller.task, episodes, seed)
 
 
 def check_inputs_fit(task: object, trained: TaskConfig) -> None:
