@@ -152,6 +152,20 @@ def test_a_resume_of_a_run_that_lost_its_latest_json_says_how_to_restore_it(run:
     assert checkpoints(run)[-1][0] == episodes + 16
 
 
+def test_a_resume_of_checkpoints_copied_without_their_run_folder_says_to_copy_the_whole_folder(
+    run: Path, tmp_path: Path, capsys
+) -> None:
+    """It was "unreadable (FileNotFoundError ...)": the line now says what else to bring, and what reads checkpoints/
+    alone does."""
+    copied = tmp_path / "copied"
+    shutil.copytree(run / "checkpoints", copied / "checkpoints")
+    episodes = checkpoints(run)[-1][0]
+    argv = ["train", *QUICK, "--out", str(copied), "--resume", "--episodes", str(episodes + 16)]
+    line = refused(capsys, *argv, naming="config.json': missing")
+    assert "copy the whole run folder" in line
+    assert main(["eval", str(copied), "--episodes", "10"]) == 0
+
+
 def test_a_resume_of_a_run_still_before_its_first_checkpoint_names_its_writer(run: Path, capsys) -> None:
     """Not "train it again without --resume": that run is still playing, in the process holding the lock."""
     shutil.rmtree(run / "checkpoints")

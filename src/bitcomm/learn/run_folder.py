@@ -199,7 +199,14 @@ def read_config_json(out: Path) -> dict[str, Any]:
 
 
 def check_config_json(out: Path) -> None:
-    """One line unless the run's config.json can take this start's record (a resume appends to its `starts`)."""
+    """One line unless the run's config.json can take this start's record (a resume appends to its `starts`); a
+    folder holding `checkpoints/` alone (copied back from another machine, say) is told what else to bring."""
+    path = out / "config.json"
+    if not path.exists() and not path.is_symlink():
+        raise ConfigError(
+            f"invalid config={str(path)!r}: missing; a resume continues the run's record of where and how it ran, so "
+            "copy the whole run folder (checkpoints/ alone is enough for eval, render and export)"
+        )
     recorded_starts(read_config_json(out), out)
 
 
