@@ -38,7 +38,7 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import make_train_config
 from bitcomm.learn.learner import Learner
-from bitcomm.learn.run_folder import learner_state, machine_label, restore_learner, run_machines
+from bitcomm.learn.run_folder import learner_state, machine_label, pointed_at, restore_learner, run_machines
 from bitcomm.provenance import machine
 from bitcomm.run_lock import LOCK, run_lock
 
@@ -573,6 +573,28 @@ def test_garbled_weights_or_state_are_refused(run: Path, capsys) -> None:
     line = refused(capsys, "eval", str(run), "--episodes", "10", naming=weights_file.name)
     assert "checksum mismatch" in line
     refused(capsys, "eval", str(weights_file), "--episodes", "10", naming="checksum mismatch")
+
+
+@pytest.mark.parametrize("damaged", ["safetensors", "state.pt"])
+def test_a_resume_of_a_damaged_latest_checkpoint_says_how_to_resume_from_the_one_before(
+    damaged: str, run: Path, capsys
+) -> None:
+    """A fresh start would remove the run's earlier checkpoints: the line says how to go on from the newest of them,
+    and doing what it says resumes. A resume that changes the config is not told about older checkpoints."""
+    (older_episodes, older), (episodes, latest) = checkpoints(run)[-2:]
+    _flip_last_byte(latest.with_name(latest.name.replace(".safetensors", f".{damaged}")))
+    argv = ["train", *QUICK, "--out", str(run), "--resume", "--episodes", str(episodes + 16)]
+    line = refused(capsys, *argv, naming="checksum mismatch")
+    assert line.endswith(f"to resume from the older {older.name}, {pointed_at(older_episodes, older)}")
+    (run / "checkpoints" / "latest.json").write_text(line.split(" as ", 1)[1])
+    rc, err = cli(capsys, *argv)
+    assert rc == 0, err
+    assert checkpoints(run)[-1][0] == episodes + 16
+    from bitcomm.learn.run import train
+
+    with pytest.raises(ConfigError, match="invalid lr=0.5") as refusal:  # from Python, where the checkpoint says so
+        train(tiny_config(lr=0.5, episodes=episodes + 32), run, resume=True, progress=False)
+    assert "older" not in str(refusal.value)
 
 
 class _Payload:

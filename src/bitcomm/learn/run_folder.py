@@ -573,7 +573,7 @@ def check_start(out: Path, resume: bool) -> None:
                 episodes, last = kept[-1]
                 why = (
                     f"its {CHECKPOINTS}/{LATEST} is missing, though it holds checkpoints up to {last.name}; to "
-                    f'resume from that one, write {LATEST} as {{"checkpoint": "{last.name}", "episodes": {episodes}}}'
+                    f"resume from that one, {pointed_at(episodes, last)}"
                 )
             elif is_run:
                 why = (
@@ -601,12 +601,13 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
     clean(out)
     if not resume:
         return None
-    weights, info = load_weights(out)
+    with older_checkpoint_advised(out):  # a damaged file, not a config this resume may not change
+        weights, info = load_weights(out)
+        state = load_state(resolve(out))
+        for key in ("episodes", "batches", "agent_steps", "wall_s", "recent_lengths", "recent_returns"):
+            if key not in state:
+                raise ConfigError(f"invalid checkpoint={info['path']!r}: its resume state lacks {key!r}")
     check_resumed_as_started(cfg, out, info["config"])
-    state = load_state(resolve(out))
-    for key in ("episodes", "batches", "agent_steps", "wall_s", "recent_lengths", "recent_returns"):
-        if key not in state:
-            raise ConfigError(f"invalid checkpoint={info['path']!r}: its resume state lacks {key!r}")
     # refuse a damaged config.json or metrics.csv before anything is written
     check_config_json(out)
     if (out / "metrics.csv").exists():  # a folder of that name too, before the log would fail on it
@@ -615,6 +616,25 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
     if played >= cfg.episodes:  # `make train` run again: say why nothing trains
         print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train")
     return {**state, "weights": weights, "info": info}
+
+
+def pointed_at(episodes: int, file: Path) -> str:
+    """How to make a run resume from its checkpoint `file` of `episodes` episodes."""
+    return f'write {CHECKPOINTS}/{LATEST} as {{"checkpoint": "{file.name}", "episodes": {episodes}}}'
+
+
+@contextlib.contextmanager
+def older_checkpoint_advised(out: Path) -> Iterator[None]:
+    """A latest checkpoint refused on resume (damaged, say) is one line that also says how to resume from the newest
+    older one the run keeps: one bad file need not cost the run its earlier checkpoints, as a fresh start would."""
+    try:
+        yield
+    except ConfigError as err:
+        latest = resolve(out).name
+        older = [(e, f) for e, f in complete(out / CHECKPOINTS) if f.name < latest]  # zero-padded: by episodes
+        if not older:
+            raise
+        raise ConfigError(f"{err}; to resume from the older {older[-1][1].name}, {pointed_at(*older[-1])}") from None
 
 
 def check_resumed_as_started(cfg: RunConfig, out: Path, recorded: dict[str, Any]) -> None:
