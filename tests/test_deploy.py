@@ -212,6 +212,31 @@ def test_the_cli_summarises_the_episodes_played_before_the_time_bound() -> None:
     assert finished > 0 and lines[-1].startswith(f"deployed, {finished} of 100000 episodes before it stopped: mean")
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+def test_an_interrupted_run_summarises_the_episodes_it_played(signum: signal.Signals) -> None:
+    """Ctrl-C (SIGINT to the terminal's process group) or `timeout` (SIGTERM to the group) printed "interrupted", or
+    nothing at all, and lost the episodes played; now they are summarised as after the time bound, and the exit
+    status says which signal stopped the run."""
+    cmd = [sys.executable, "-m", "bitcomm.cli", "deploy", "--policy", "oracle", "--size", "4", "--bits", "4",
+           "--episodes", "100000", "--seed", "0", "--deadline-ms", "1", "--timeout", "60"]  # fmt: skip
+    world = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, even under CI
+    )  # fmt: skip
+    try:
+        assert world.stdout is not None
+        assert world.stdout.readline().startswith("episode 0:")
+        os.killpg(world.pid, signum)  # the world and its agents, as a terminal or `timeout` signals them
+        out, err = world.communicate(timeout=30)
+    finally:
+        if world.poll() is None:
+            world.kill()
+    assert world.returncode == 128 + signum and err.strip() == "bitcomm deploy: interrupted", err
+    lines = ("episode 0: ...\n" + out).splitlines()
+    finished = sum(line.startswith("episode ") for line in lines)
+    assert lines[-1].startswith(f"deployed, {finished} of 100000 episodes before it stopped: mean episode length")
+
+
 def test_an_agent_dying_ends_the_run(monkeypatch: pytest.MonkeyPatch) -> None:
     procs: list[subprocess.Popen[bytes]] = []
     real_popen = subprocess.Popen
