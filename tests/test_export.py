@@ -294,6 +294,17 @@ def test_bad_input_is_one_line(
     assert Controller.load(run).info["episodes"] == 16  # the run is as it was
 
 
+def test_a_folder_where_the_card_goes_is_refused_before_the_graph_is_written(
+    exported: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """The graph was written, then the card failed, and the line blamed the graph's file ("invalid onnx='p.onnx':
+    cannot be written (Is a directory)")."""
+    (tmp_path / "p.onnx.json").mkdir()
+    assert main(["export", str(exported[0]), "--onnx", str(tmp_path / "p.onnx")]) == 2
+    assert f"its card would go to {str(tmp_path / 'p.onnx.json')!r}, which is a folder" in capsys.readouterr().err
+    assert not (tmp_path / "p.onnx").exists()
+
+
 def test_export_never_replaces_a_runs_config(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """`--onnx RUN/config` would write its card to RUN/config.json: one line, and the run's record stays."""
     run = make_checkpoint(tmp_path / "run")
