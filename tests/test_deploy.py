@@ -23,6 +23,7 @@ from bitcomm.deploy.agent import Inbox
 from bitcomm.deploy.protocol import pack_datagram, unpack_datagram
 from bitcomm.envs.core import GoalExchangeCore
 from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.errors import ConfigError
 from bitcomm.policies.evaluation import evaluate, run_first_episodes
 from bitcomm.policies.reference import OraclePolicy
 from bitcomm.policies.source import PolicySource
@@ -116,6 +117,24 @@ def test_an_agent_started_with_a_bad_world_address_says_so_in_one_line(
     assert agent_module.main(["--world", world, "--agent", "0"]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err and f"invalid world={world!r}" in err
+
+
+@pytest.mark.parametrize(
+    ("bad", "line"),
+    [
+        ({"episodes": 0}, r"invalid episodes=0: must be an integer >= 1"),  # numpy: "need at least one array"
+        ({"seed": -1}, r"invalid seed=-1: must be an integer in \[0, 4294967295\]"),  # numpy: "non-negative integer"
+        ({"deadline_ms": -5}, r"invalid deadline-ms=-5: must be a finite number > 0"),  # played on as 0
+        ({"timeout_s": float("nan")}, r"invalid timeout=nan: must be a finite number > 0"),
+    ],
+)
+def test_run_deploy_refuses_bad_values_in_one_line_before_any_process_starts(
+    bad: dict[str, float], line: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As `bitcomm deploy`'s flags do, and as `evaluate` does for its episodes and seed."""
+    monkeypatch.setattr(world_module.subprocess, "Popen", None)  # starting an agent would be a TypeError
+    with pytest.raises(ConfigError, match=f"^{line}$"):
+        run_deploy(ORACLE, TINY, **{"episodes": 2, **bad})  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize("task", [TINY, TaskConfig(EnvConfig(size=5, n_agents=3, observes=(2, 0, 1)))])
