@@ -495,8 +495,7 @@ def test_an_interrupt_of_the_parent_alone_stops_the_running_runs(tmp_path: Path)
 def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
     """`kill PID` of a study, or a scheduler's time limit, used to end it (and, with it, its runs) at once; while the
     study waits on its runs SIGTERM is an interrupt, so the runs save their batch first (`stop_runs`), exit 143."""
-    from bitcomm.learn.run_folder import Stopped
-    from bitcomm.studies.compare import sigterm_interrupts
+    from bitcomm.stop_signals import Stopped, sigterm_interrupts
 
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
     with pytest.raises(Stopped) as stopped, sigterm_interrupts():

@@ -23,6 +23,7 @@ from bitcomm.deploy.agent import Inbox
 from bitcomm.deploy.protocol import pack_datagram, unpack_datagram
 from bitcomm.envs.core import GoalExchangeCore
 from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.errors import ConfigError
 from bitcomm.policies.evaluation import evaluate, run_first_episodes
 from bitcomm.policies.reference import OraclePolicy
 from bitcomm.policies.source import PolicySource
@@ -118,6 +119,24 @@ def test_an_agent_started_with_a_bad_world_address_says_so_in_one_line(
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err and f"invalid world={world!r}" in err
 
 
+@pytest.mark.parametrize(
+    ("bad", "line"),
+    [
+        ({"episodes": 0}, r"invalid episodes=0: must be an integer >= 1"),  # numpy: "need at least one array"
+        ({"seed": -1}, r"invalid seed=-1: must be an integer in \[0, 4294967295\]"),  # numpy: "non-negative integer"
+        ({"deadline_ms": -5}, r"invalid deadline-ms=-5: must be a finite number > 0"),  # played on as 0
+        ({"timeout_s": float("nan")}, r"invalid timeout=nan: must be a finite number > 0"),
+    ],
+)
+def test_run_deploy_refuses_bad_values_in_one_line_before_any_process_starts(
+    bad: dict[str, float], line: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As `bitcomm deploy`'s flags do, and as `evaluate` does for its episodes and seed."""
+    monkeypatch.setattr(world_module.subprocess, "Popen", None)  # starting an agent would be a TypeError
+    with pytest.raises(ConfigError, match=f"^{line}$"):
+        run_deploy(ORACLE, TINY, **{"episodes": 2, **bad})  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize("task", [TINY, TaskConfig(EnvConfig(size=5, n_agents=3, observes=(2, 0, 1)))])
 def test_placed_episode_is_the_evaluators_episode(task: TaskConfig) -> None:
     starts, goals = episode_set(task, 20, seed=3)
@@ -210,6 +229,31 @@ def test_the_cli_summarises_the_episodes_played_before_the_time_bound() -> None:
     lines = done.stdout.splitlines()
     finished = sum(line.startswith("episode ") for line in lines)
     assert finished > 0 and lines[-1].startswith(f"deployed, {finished} of 100000 episodes before it stopped: mean")
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+def test_an_interrupted_run_summarises_the_episodes_it_played(signum: signal.Signals) -> None:
+    """Ctrl-C (SIGINT to the terminal's process group) or `timeout` (SIGTERM to the group) printed "interrupted", or
+    nothing at all, and lost the episodes played; now they are summarised as after the time bound, and the exit
+    status says which signal stopped the run."""
+    cmd = [sys.executable, "-m", "bitcomm.cli", "deploy", "--policy", "oracle", "--size", "4", "--bits", "4",
+           "--episodes", "100000", "--seed", "0", "--deadline-ms", "1", "--timeout", "60"]  # fmt: skip
+    world = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, even under CI
+    )  # fmt: skip
+    try:
+        assert world.stdout is not None
+        assert world.stdout.readline().startswith("episode 0:")
+        os.killpg(world.pid, signum)  # the world and its agents, as a terminal or `timeout` signals them
+        out, err = world.communicate(timeout=30)
+    finally:
+        if world.poll() is None:
+            world.kill()
+    assert world.returncode == 128 + signum and err.strip() == "bitcomm deploy: interrupted", err
+    lines = ("episode 0: ...\n" + out).splitlines()
+    finished = sum(line.startswith("episode ") for line in lines)
+    assert lines[-1].startswith(f"deployed, {finished} of 100000 episodes before it stopped: mean episode length")
 
 
 def test_an_agent_dying_ends_the_run(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -710,7 +710,7 @@ def test_ctrl_c_again_while_a_batch_plays_on_saves_the_batches_before_and_resume
     the batch) never comes due, and the second ended the run unsaved, losing up to `checkpoint_seconds` of
     training. It now keeps every batch learned, drops the one being played, and a resume plays that batch as the
     run would have (the same episodes and draws: its metrics match an uninterrupted run's)."""
-    from bitcomm.learn.run_folder import Stopped
+    from bitcomm.stop_signals import Stopped
 
     cfg = config(env=f"{__name__}:OddRewardEnv", env_kwargs={"reward": "interrupt", "from_reset": 3},
                  checkpoint_seconds=3600, episodes=16)  # fmt: skip

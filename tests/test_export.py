@@ -242,6 +242,17 @@ def test_a_bad_seed_is_one_line_as_the_controllers(exported: tuple[Path, Path], 
             load()
 
 
+@pytest.mark.parametrize("threads", [0, -1, "2", 2.5, None, True, 10**9])
+def test_bad_threads_are_one_line(exported: tuple[Path, Path], threads: object) -> None:
+    """onnxruntime's TypeError ("2", 2.5, None), a count it took in silence (0, -1, True), or its MemoryError read
+    as a file that is not an ONNX model (10**9), where the number of threads is what was wrong."""
+    with pytest.raises(ConfigError, match=r"^invalid threads=.*: must be an integer in \[1, 1024\]$"):
+        OnnxController.load(exported[1], threads=threads)  # type: ignore[arg-type]
+    planes, received = random_inputs(TINY, 3)
+    moves, _ = OnnxController.load(exported[1], threads=np.int64(2)).act(planes > 0.5, received)
+    assert moves.shape == (3,)
+
+
 def _bad_onnx(tmp_path: Path) -> Path:
     bad = tmp_path / "not.onnx"
     bad.write_bytes(b"not an onnx model")
@@ -281,6 +292,17 @@ def test_bad_input_is_one_line(
     assert named in err
     assert not (tmp_path / "p.onnx").exists()
     assert Controller.load(run).info["episodes"] == 16  # the run is as it was
+
+
+def test_a_folder_where_the_card_goes_is_refused_before_the_graph_is_written(
+    exported: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """The graph was written, then the card failed, and the line blamed the graph's file ("invalid onnx='p.onnx':
+    cannot be written (Is a directory)")."""
+    (tmp_path / "p.onnx.json").mkdir()
+    assert main(["export", str(exported[0]), "--onnx", str(tmp_path / "p.onnx")]) == 2
+    assert f"its card would go to {str(tmp_path / 'p.onnx.json')!r}, which is a folder" in capsys.readouterr().err
+    assert not (tmp_path / "p.onnx").exists()
 
 
 def test_export_never_replaces_a_runs_config(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -26,6 +26,8 @@ MAX_AGENTS = 64
 """Agents cap: every agent's network sees 2n state planes and each step costs n forward passes."""
 MAX_STEPS = 100_000
 """Episode length cap (`max_steps`): beyond it a random policy's evaluation would run for days."""
+MAX_JOBS = 1024
+"""Processes or threads at once (`--jobs`, `--threads`, `OnnxController.load(threads=)`)."""
 
 
 def check_seed(value: object) -> int:

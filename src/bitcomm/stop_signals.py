@@ -5,16 +5,49 @@ process of the job). A trainer takes them (`bitcomm.learn.run_folder.stop_after_
 saves and exits. The processes it starts must not die of them first, or the batch they were on, and with it the
 run's last minutes, would be lost: they start deaf to them (`deaf_children`) and, where they run bitcomm's code,
 ignore them for good (`ignore_stop_signals`); the trainer stops them itself once it has saved.
+
+A command that does not train (a study, a deployment) takes SIGTERM as Ctrl-C (`sigterm_interrupts`), so that what
+it does on an interrupt (stop its runs, summarise the episodes played) it does when `kill PID` or a scheduler's time
+limit stops it too.
 """
 
 from __future__ import annotations
 
 import contextlib
 import signal
+import threading
 from collections.abc import Iterator
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 """What `bitcomm.learn.run_folder.stop_after_batch` takes in a trainer."""
+
+
+class Stopped(KeyboardInterrupt):
+    """A command stopped on a signal (a trainer once it has saved the batch it was on); `exit_code` is the shell's
+    128 + signal, which `bitcomm.cli` exits with."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.exit_code = 128 + signum
+
+
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM (`kill PID`, a scheduler's time limit) raises `Stopped` as Ctrl-C raises KeyboardInterrupt, rather than
+    ending the process at once; the command then exits 143, as killed by it. Where SIGTERM is not the default's (a
+    caller took it) or off the main thread, nothing changes."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+
+    def stop(signum: int, frame: object) -> None:
+        raise Stopped(signum)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 @contextlib.contextmanager

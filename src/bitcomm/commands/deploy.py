@@ -80,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.deploy import DeployError, DeployResult, run_deploy
     from bitcomm.policies.agent_policies import BatchedPolicy
     from bitcomm.policies.evaluation import evaluate
+    from bitcomm.stop_signals import sigterm_interrupts
 
     episodes = args.episodes
     source = source_from_args(args)
@@ -89,20 +90,31 @@ def run(args: argparse.Namespace) -> int:
     source.build(task)  # a policy that cannot be built fails here, with one line, before any process starts
     log = sys.stderr if args.json else sys.stdout
 
+    played: list[EpisodeOutcome] = []
+
     def report(o: EpisodeOutcome) -> None:
+        played.append(o)
         status = "on goals" if o.success else "truncated"
         print(f"episode {o.index}: {o.length} steps, {1000 * o.wall_s:.1f} ms, {status}", file=log, flush=True)
 
+    def summarise_played() -> None:
+        """The episodes played before the run stopped, as the summary would read them."""
+        if played:
+            summary = DeployResult(played, task.env.max_steps).summary
+            print(f"deployed, {len(played)} of {episodes} episodes before it stopped: {_line(summary)}", file=log)
+
     try:
-        result = run_deploy(source, task, episodes, args.seed, args.deadline_ms, args.timeout, on_episode=report)
+        with sigterm_interrupts():  # `kill PID` or a scheduler's limit stops it as Ctrl-C does, with its summary
+            result = run_deploy(source, task, episodes, args.seed, args.deadline_ms, args.timeout, on_episode=report)
+            simulated = evaluate(BatchedPolicy(source.build(task, seed=args.seed)), task, episodes, args.seed)
     except DeployError as err:
-        if err.finished:  # the episodes played before it stopped, as the summary would read them
-            played = DeployResult(err.finished, task.env.max_steps).summary
-            print(f"deployed, {len(err.finished)} of {episodes} episodes before it stopped: {_line(played)}", file=log)
+        summarise_played()
         print(f"bitcomm deploy: error: {err}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: what was played still counts; `bitcomm.cli` says it stopped
+        summarise_played()
+        raise
     deployed = result.summary
-    simulated = evaluate(BatchedPolicy(source.build(task, seed=args.seed)), task, episodes, args.seed)
     if args.json:
         out = deployed.to_dict()
         out.update(simulator=simulated.to_dict(), network=result.network, startup_s=result.startup_s,

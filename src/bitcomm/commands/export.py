@@ -25,14 +25,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _check_output(path: Path) -> None:
-    """Refuse, before any work, an output that cannot be written, or that would replace a file of a training run
-    (a checkpoint, `latest.json`, config.json: `--onnx RUN/checkpoints/latest` writes its card to latest.json)."""
+    """Refuse, before any work, an output that cannot be written (a folder where the graph or its card goes), or that
+    would replace a file of a training run (a checkpoint, `latest.json`, config.json: `--onnx RUN/checkpoints/latest`
+    writes its card to latest.json)."""
     from bitcomm.checkpoint import LATEST, is_run_folder
     from bitcomm.learn.run_folder import RUN_FILES
     from bitcomm.policies.onnx_policy import sidecar_path
 
     if path.is_dir():
         raise bad_value("onnx", str(path), "is a folder; give a file name such as policy.onnx")
+    if sidecar_path(path).is_dir():  # found only once the graph was written, and named as if the graph were at fault
+        raise bad_value("onnx", str(path), f"its card would go to {str(sidecar_path(path))!r}, which is a folder")
     if (path.parent / LATEST).is_file():
         raise bad_value("onnx", str(path), "is in a run's checkpoints folder, where it could replace the run's files")
     for target in (path, sidecar_path(path)):

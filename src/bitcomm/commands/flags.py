@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bitcomm.config import MAX_EVAL_EPISODES, MAX_SEED
+from bitcomm.config import MAX_EVAL_EPISODES, MAX_JOBS, MAX_SEED
 from bitcomm.errors import bad_value
 from bitcomm.memory import BYTES_PER_GB, acting_bytes, available_bytes
 
@@ -34,8 +34,6 @@ MAX_SAMPLES = 10_000_000
 """`analyze --samples`: 10^7 deliveries is minutes of play and a few hundred MB."""
 MAX_REPEATS = 10_000
 """Repetitions of a measurement (`--repeats`, `--batches`, `--fit-*`, `--seeds`): beyond this, days."""
-MAX_JOBS = 1024
-"""Processes at once (`--jobs`, `--threads`)."""
 MAX_FRAMES = 1000
 """`render` draws one frame per step of an episode truncated at `--max-steps`: at most 1,000 frames."""
 MAX_FPS = 100.0

@@ -32,9 +32,10 @@ from typing import IO, Any, TypeGuard
 
 import numpy as np
 
-from bitcomm.config import TaskConfig
+from bitcomm.config import TaskConfig, check_evaluation
 from bitcomm.deploy.protocol import LineSocket, Malformed, PeerGone, encode_array
 from bitcomm.envs.core import N_MOVES, GoalExchangeCore
+from bitcomm.errors import check_number
 from bitcomm.policies.evaluation import EvalResult, seeded_episode_envs
 from bitcomm.policies.source import PolicySource
 
@@ -256,6 +257,9 @@ def run_deploy(
     `drop_prob` (independently per recipient) and flips each bit with `flip_prob`, from its own seeded
     stream. `deadline_ms`: how long after it learns its step an agent waits for that step's messages.
     """
+    check_evaluation(episodes, seed)  # numpy's "need at least one array to concatenate" for no episodes
+    for name, value in (("deadline_ms", deadline_ms), ("timeout", timeout_s), ("step_timeout_s", step_timeout_s)):
+        check_number(name, value, 0.0, strict=True)  # a negative deadline played on, as if it were 0
     began = time.monotonic()
     n = task.env.n_agents
     starts, goals = episode_set(task, episodes, seed)

@@ -58,6 +58,7 @@ from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
 from bitcomm.learn.resume_rules import changed_on_resume
 from bitcomm.plotting import save_figure
 from bitcomm.run_lock import run_lock
+from bitcomm.stop_signals import Stopped
 
 ConfigT = TypeVar("ConfigT")
 
@@ -686,14 +687,6 @@ def save_learner(
     and what else the trainer needs to resume (`extra`); `rank` as `save_run_checkpoint`'s."""
     state = {**prog.state(), **learner_state(learner, generator), **(extra or {})}
     return save_run_checkpoint(out, cfg, checkpoint_weights(learner), prog, state, metric, rank)
-
-
-class Stopped(KeyboardInterrupt):
-    """A run stopped on a signal after saving the batch it was on; `exit_code` is the shell's 128 + signal."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.exit_code = 128 + signum
 
 
 def stopped(signum: int, episodes: int, path: Path) -> Stopped:

@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 
 from bitcomm.channel.core import index_to_bits
-from bitcomm.config import TaskConfig, check_bool, check_seed
+from bitcomm.config import MAX_JOBS, TaskConfig, check_bool, check_seed
 from bitcomm.envs.core import N_MOVES
-from bitcomm.errors import ConfigError
+from bitcomm.errors import ConfigError, bad_value, is_integer
 from bitcomm.policies.agent_policies import agent_batch
 
 FORMAT = "bitcomm-onnx-policy"
@@ -122,13 +122,16 @@ class OnnxController:
     @classmethod
     def load(cls, path: str | Path, seed: int | np.random.SeedSequence | None = 0, threads: int = 1) -> OnnxController:
         """From a `.onnx` file written by `bitcomm export`; `seed` drives sampling, `threads` onnxruntime."""
+        if not is_integer(threads) or not 1 <= threads <= MAX_JOBS:  # type: ignore[operator]
+            # onnxruntime refused "2" or 2.5 in a TypeError, and a billion in a MemoryError read as a bad file
+            raise bad_value("threads", threads, f"must be an integer in [1, {MAX_JOBS}]")
         ort = require("onnxruntime")
         if Path(path).is_dir():  # a run folder, or export's: "no such file" would send the user looking for one
             raise ConfigError(f"invalid onnx={str(path)!r}: is a folder; give the .onnx file `bitcomm export` wrote")
         if not Path(path).is_file():
             raise ConfigError(f"invalid onnx={str(path)!r}: no such file")
         options = ort.SessionOptions()
-        options.intra_op_num_threads = options.inter_op_num_threads = threads
+        options.intra_op_num_threads = options.inter_op_num_threads = int(threads)
         try:
             session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         except Exception as err:  # onnxruntime raises its own error types for unreadable models

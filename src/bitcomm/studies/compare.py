@@ -60,6 +60,7 @@ from bitcomm.learn.resume_rules import SAVING, flat
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policies.source import TASK_FLAGS
 from bitcomm.stats import mean_interval
+from bitcomm.stop_signals import sigterm_interrupts
 from bitcomm.studies.tables import task_title
 
 if TYPE_CHECKING:
@@ -527,27 +528,6 @@ def repeats_count_once(since: float) -> Iterator[None]:
     finally:
         for s, handler in taken.items():
             signal.signal(s, handler)
-
-
-@contextlib.contextmanager
-def sigterm_interrupts() -> Iterator[None]:
-    """SIGTERM (`kill PID`, a scheduler's time limit) interrupts the study as Ctrl-C does, so that its running runs
-    save the batch they are on (`stop_runs`) rather than die with it; the study then exits 143, as killed by it.
-    Where SIGTERM is not the default's (a caller took it) or off the main thread, nothing changes."""
-    from bitcomm.learn.run_folder import Stopped
-
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
-        yield
-        return
-
-    def stop(signum: int, frame: object) -> None:
-        raise Stopped(signum)
-
-    signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def stop_runs(processes: list[Any], grace_s: float = STOP_GRACE_S) -> None:
