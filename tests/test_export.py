@@ -212,6 +212,26 @@ def test_cli_exports_a_run_folder(exported: tuple[Path, Path], tmp_path: Path, c
         np.testing.assert_array_equal(a, b)
 
 
+def test_eval_of_the_exported_file_plays_greedily_as_its_run(
+    exported: tuple[Path, Path], capsys: pytest.CaptureFixture
+) -> None:
+    """`bitcomm eval policy.onnx` measures what a robot will run; it was 'not a bitcomm checkpoint (SafetensorError:
+    ...)'. Greedy play is the run's to the episode; the task flags are checked as for the run."""
+    run, out = exported
+
+    def measured(*argv: str) -> dict[str, Any]:
+        assert main(["eval", *argv, "--greedy", "--episodes", "40", "--seed", "3", "--json"]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    assert measured(str(out)) == measured(str(run))
+    assert measured(str(out), "--flip-prob", "0.2") == measured(str(run), "--flip-prob", "0.2")
+    assert main(["eval", str(out), "--episodes", "10"]) == 0  # sampled, from onnxruntime's own stream
+    assert f"{out} (sampling): 10 episodes" in capsys.readouterr().out
+    assert main(["eval", str(out), "--size", "5"]) == 2
+    refusal = f"bitcomm eval: error: invalid size=5: ONNX {str(out)!r} was trained with size=4"
+    assert capsys.readouterr().err.strip() == refusal
+
+
 @pytest.mark.parametrize("policy", ["onnx", "run"])
 def test_deploy_runs_the_exported_policy(exported: tuple[Path, Path], policy: str) -> None:
     """As exported, or from its run folder: each agent process then samples from a torch stream of its own."""

@@ -18,8 +18,10 @@ from bitcomm.commands.flags import EVAL_EPISODES, SEED, add_threads_flag, check_
 def add_parser(sub: argparse._SubParsersAction) -> None:
     from bitcomm.policies.source import mark_task_defaults
 
-    p = sub.add_parser("eval", help="evaluate a trained policy (run folder or checkpoint file)")
-    p.add_argument("run_path", metavar="RUN_OR_CHECKPOINT", help="run folder or .safetensors file")
+    p = sub.add_parser("eval", help="evaluate a trained policy (run folder, checkpoint file or exported .onnx)")
+    p.add_argument(
+        "run_path", metavar="RUN_OR_CHECKPOINT", help="run folder, .safetensors file, or .onnx file of bitcomm export"
+    )
     p.add_argument("--episodes", type=EVAL_EPISODES, default=2000, help="evaluation episodes (default %(default)s)")
     p.add_argument("--seed", type=SEED, default=0, help="seed of the episode set and of sampling (default %(default)s)")
     p.add_argument("--greedy", action="store_true", help="most likely move and message instead of sampling")
@@ -38,11 +40,28 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.policies.source import POLICY_INPUTS, resolve_task
 
     use_threads(args)
+    if str(args.run_path).endswith(".onnx"):
+        return evaluate_onnx(args)
     if env_run_config(args.run_path) is not None:
         return env_train.evaluate(args)
     controller = Controller.load(args.run_path, seed=args.seed)
     task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", fixed=POLICY_INPUTS)
     check_eval(task, args.episodes, onehot=controller.messages == "onehot")
     result = evaluate_controller(controller, args.episodes, args.seed, args.greedy, task)
+    print_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
+    return 0
+
+
+def evaluate_onnx(args: argparse.Namespace) -> int:
+    """An exported policy on the simulator, run by onnxruntime as a robot runs it: its greedy play is the run's
+    to the step; sampled play draws from numpy's stream, not torch's, so it matches in distribution."""
+    from bitcomm.policies.agent_policies import BatchedPolicy
+    from bitcomm.policies.evaluation import evaluate
+    from bitcomm.policies.source import PolicySource
+
+    source = PolicySource("onnx", greedy=args.greedy, onnx=args.run_path)
+    task = source.task_from_args(args)
+    check_eval(task, args.episodes, onehot=source.onehot())
+    result = evaluate(BatchedPolicy(source.build(task, seed=args.seed)), task, args.episodes, args.seed)
     print_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
     return 0
