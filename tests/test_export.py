@@ -262,6 +262,21 @@ def test_a_bad_seed_is_one_line_as_the_controllers(exported: tuple[Path, Path], 
             load()
 
 
+def test_both_controllers_take_a_seed_sequence_or_none_for_fresh_entropy(exported: tuple[Path, Path]) -> None:
+    """A fleet seeds its robots as `OnnxController` allowed and `Controller` refused ('invalid seed=None'): one
+    `SeedSequence` spawned per robot, or None for the OS's entropy. A sequence seeds as the int it generates."""
+    run, out = exported
+    robot = np.random.SeedSequence(7).spawn(2)[1]
+    as_int = int(robot.generate_state(1, np.uint32)[0])
+    assert torch.equal(
+        Controller.load(run, seed=robot).generator.get_state(), Controller.load(run, seed=as_int).generator.get_state()
+    )
+    fresh = [Controller.load(run, seed=None).generator.initial_seed() for _ in range(2)]
+    assert fresh[0] != fresh[1]
+    for seed in (robot, None):  # as it already took them
+        OnnxController.load(out, seed=seed)
+
+
 @pytest.mark.parametrize("threads", [0, -1, "2", 2.5, None, True, 10**9])
 def test_bad_threads_are_one_line(exported: tuple[Path, Path], threads: object) -> None:
     """onnxruntime's TypeError ("2", 2.5, None), a count it took in silence (0, -1, True), or its MemoryError read

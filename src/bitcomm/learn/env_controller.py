@@ -25,13 +25,13 @@ import numpy as np
 import torch
 from pettingzoo import ParallelEnv
 
-from bitcomm.config import check_bool, check_seed
+from bitcomm.config import check_bool
 from bitcomm.envs.vector import EnvLayout, agent_rows, check_finite, joint_action
 from bitcomm.errors import bad_value
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_eval import load_env_policy
 from bitcomm.learn.env_rollout import env_factory
-from bitcomm.policies.controller import sampling_generator
+from bitcomm.policies.controller import Seed, sampling_generator, seeded_generator
 from bitcomm.policies.mlp import MlpPolicy
 
 KEYS = ("observation", "messages")
@@ -41,11 +41,11 @@ KEYS = ("observation", "messages")
 class EnvController:
     """The shared policy of a run on a wrapped env, acting for the agents present at each step of one episode."""
 
-    def __init__(self, policy: MlpPolicy, config: EnvTrainConfig, seed: int = 0) -> None:
+    def __init__(self, policy: MlpPolicy, config: EnvTrainConfig, seed: Seed = 0) -> None:
         self.policy = policy.eval()
         self.config = config
         """The run's `EnvTrainConfig`: its env, env kwargs and channel (what `make_env` builds)."""
-        self.generator = torch.Generator().manual_seed(check_seed(seed))  # as `Controller`: torch's refusals name none
+        self.generator = seeded_generator(seed)  # as `Controller`'s
 
     @property
     def layout(self) -> EnvLayout:
@@ -53,7 +53,7 @@ class EnvController:
         return self.policy.layout
 
     @classmethod
-    def load(cls, path: str | Path, typed_env: str | None = None, seed: int = 0) -> EnvController:
+    def load(cls, path: str | Path, typed_env: str | None = None, seed: Seed = 0) -> EnvController:
         """From a run folder (its latest checkpoint) or a checkpoint file trained with `--env`; `seed` drives
         sampling. The recorded env is built once, to read its spaces, only if trusted: `typed_env` (the spec you
         trained with) or `BITCOMM_TRUST_ENVS` vouches for it (`load_env_policy`; docs/env_learning.md)."""

@@ -34,6 +34,23 @@ def model_from_dict(d: dict[str, Any]) -> ModelConfig:
     return ModelConfig(**values)
 
 
+Seed = int | np.random.SeedSequence | None
+"""What a deployed policy's sampling stream takes, as `OnnxController`'s: an int, a `SeedSequence` (one spawned per
+robot, say), or None for fresh entropy from the OS (two robots loaded with one int draw the same numbers)."""
+
+
+def seeded_generator(seed: Seed) -> torch.Generator:
+    """A torch generator seeded by `seed` (`Seed`); one error line for anything else, where torch takes -1 and
+    refuses 2**64, a numpy integer or a string in words naming neither."""
+    if seed is None:
+        generator = torch.Generator()
+        generator.seed()
+        return generator
+    if isinstance(seed, np.random.SeedSequence):
+        seed = int(seed.generate_state(1, np.uint32)[0])
+    return torch.Generator().manual_seed(check_seed(seed))
+
+
 def sampling_generator(given: object, own: torch.Generator) -> torch.Generator:
     """The generator an `act` call samples from: `given`, else the controller's `own`; one line for anything else
     given, which torch refused deep in its sampling ("argument 'generator' must be torch.Generator, not int")."""
@@ -46,14 +63,13 @@ def sampling_generator(given: object, own: torch.Generator) -> torch.Generator:
 class Controller:
     """One shared policy network, acting for any agent of the task it was trained on."""
 
-    def __init__(self, policy: PolicyNet, config: dict[str, Any], seed: int = 0, info: dict[str, Any] | None = None):
+    def __init__(self, policy: PolicyNet, config: dict[str, Any], seed: Seed = 0, info: dict[str, Any] | None = None):
         self.policy = policy.eval()
         self.config = config
         """The training config as saved with the checkpoint (`TrainConfig.to_dict()`)."""
         self.info = info or {}
         """Checkpoint facts: path, episodes and batches trained."""
-        # torch takes -1 and refuses 2**64, a numpy integer or a string in words naming neither
-        self.generator = torch.Generator().manual_seed(check_seed(seed))
+        self.generator = seeded_generator(seed)
 
     @property
     def task(self) -> TaskConfig:
@@ -65,8 +81,8 @@ class Controller:
         return self.policy.cfg.messages
 
     @classmethod
-    def load(cls, path: str | Path, seed: int = 0) -> Controller:
-        """From a run folder (its latest checkpoint) or a checkpoint file; `seed` drives sampling."""
+    def load(cls, path: str | Path, seed: Seed = 0) -> Controller:
+        """From a run folder (its latest checkpoint) or a checkpoint file; `seed` (`Seed`) drives sampling."""
         weights, info = load_grid_weights(path)
         config = info["config"]
         try:

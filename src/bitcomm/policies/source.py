@@ -110,14 +110,6 @@ def resolve_task(
     return task
 
 
-def torch_seed(seed: int | np.random.SeedSequence) -> int:
-    """A torch generator's seed for `seed`: an int as it is, a `SeedSequence` (a deployed agent's) drawn from, in
-    the range `Controller` takes (`bitcomm.config.check_seed`: 32 bits)."""
-    if isinstance(seed, np.random.SeedSequence):
-        return int(seed.generate_state(1, np.uint32)[0])
-    return int(seed)
-
-
 @lru_cache(maxsize=4)
 def load_controller(run: str) -> Any:
     """`bitcomm.Controller.load(run)`, once per path; one error line when it cannot be done."""
@@ -204,7 +196,7 @@ class PolicySource:
             return ControllerAgent(OnnxController.load(str(self.onnx), seed=0 if seed is None else seed), self.greedy)
         loaded = load_controller(self.run)
         if seed is not None:
-            loaded = type(loaded)(loaded.policy, loaded.config, torch_seed(seed), loaded.info)
+            loaded = type(loaded)(loaded.policy, loaded.config, seed, loaded.info)
         return ControllerAgent(loaded, greedy=self.greedy)
 
     def to_dict(self) -> dict[str, Any]:
