@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from bitcomm.checkpoint import save_checkpoint
+from bitcomm.checkpoint import resolve, save_checkpoint
 from bitcomm.cli import main
 from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.envs.vec import VecGoalExchange
@@ -159,11 +159,23 @@ def test_the_file_carries_its_card(exported: tuple[Path, Path]) -> None:
     assert (card["size"], card["bits"], card["slots"], card["messages"], card["agents"]) == (4, 4, 1, "bitwise", 2)
     assert card["inputs"] == {"planes": ["N", 2, 4, 4], "received": ["N", 1, 4]}
     assert card["outputs"] == {"move_logits": ["N", 5], "message_logits": ["N", 4]}
-    assert card["checkpoint"] == str(run / "checkpoints" / "ckpt_000000016.safetensors")
+    assert card["checkpoint"] == str((run / "checkpoints" / "ckpt_000000016.safetensors").resolve())
     assert card["episodes_trained"] == 16 and card["bitcomm_version"]
     assert onnx.task == TINY
     inputs = {i.name: i.shape for i in onnx.session.get_inputs()}
     assert inputs == {"planes": ["N", 2, 4, 4], "received": ["N", 1, 4]}
+
+
+def test_the_card_names_its_checkpoint_wherever_export_ran(
+    exported: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`bitcomm export run ...` typed in the run's parent wrote "run/checkpoints/...", which traces nowhere from the
+    robot the card is copied to."""
+    run, _ = exported
+    monkeypatch.chdir(run.parent)
+    assert main(["export", run.name, "--onnx", str(tmp_path / "p.onnx")]) == 0
+    card = json.loads(sidecar_path(tmp_path / "p.onnx").read_text())
+    assert Path(card["checkpoint"]).is_absolute() and Path(card["checkpoint"]).samefile(resolve(run))
 
 
 def test_the_card_says_who_hears_whom_and_what_each_tensor_holds(tmp_path: Path) -> None:

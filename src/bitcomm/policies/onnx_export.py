@@ -28,6 +28,13 @@ from bitcomm.policies.onnx_policy import FORMAT, INPUTS, METADATA_KEY, OUTPUTS, 
 OPSET = 17  # onnxruntime >= 1.14 runs it; the graph needs nothing newer
 
 
+def checkpoint_named(controller: Controller) -> str:
+    """The checkpoint the policy was loaded from, as an absolute path (one relative to where export ran traces
+    nowhere once the card is on a robot); "" for a controller built in memory."""
+    path = controller.info.get("path")
+    return str(Path(path).resolve()) if path else ""
+
+
 def policy_card(controller: Controller) -> dict[str, Any]:
     """What a robot needs to feed the exported graph and read its outputs, and where it came from: enough for a
     runtime without bitcomm (C++, a microcontroller), so who hears whom is written out rather than left to
@@ -44,7 +51,7 @@ def policy_card(controller: Controller) -> dict[str, Any]:
         "format": FORMAT,
         "version": VERSION,
         "bitcomm_version": bitcomm.__version__,
-        "checkpoint": str(controller.info.get("path", "")),
+        "checkpoint": checkpoint_named(controller),
         "episodes_trained": controller.info.get("episodes"),
         "size": S,
         "agents": task.env.n_agents,
