@@ -216,3 +216,13 @@ def test_the_readme_lists_every_metrics_column_a_run_writes(tmp_path: Path) -> N
     documented = metrics_table()
     assert not written - documented, f"README's metrics.csv table lacks {sorted(written - documented)}"
     assert not documented - written, f"README's metrics.csv table lists {sorted(documented - written)}, never written"
+
+
+def test_the_env_flags_table_lists_the_learning_flags_an_env_run_takes() -> None:
+    """docs/env_learning.md's "learning flags" row names exactly those `bitcomm train --env` takes; it refuses the
+    others in one line."""
+    from bitcomm.commands.env_train import SUPPORTED
+
+    text = (ROOT / "docs" / "env_learning.md").read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| learning flags |"))
+    assert set(re.findall(r"--([\w-]+)", row)) == {name.replace("_", "-") for name in SUPPORTED}
