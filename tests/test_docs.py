@@ -9,6 +9,7 @@ flag itself.
 from __future__ import annotations
 
 import contextlib
+import csv
 import io
 import os
 import re
@@ -170,3 +171,58 @@ def test_every_python_snippet_compiles_and_its_imports_exist(where: str, source:
         for name in (n.strip() for n in names.split(",")):
             found = hasattr(imported, name) or importlib.util.find_spec(f"{module}.{name}") is not None  # a submodule
             assert found, f"{where}: from {module} import {name}"
+
+
+def metrics_table() -> set[str]:
+    """The columns README's table of metrics.csv lists (its first cell's names)."""
+    text = (ROOT / "README.md").read_text()
+    table = text[text.index("| column | what it holds |") :].split("\n\n")[0].splitlines()[2:]
+    return {name for row in table for name in re.findall(r"`([\w/]+)`", row.split(" | ")[0])}
+
+
+def test_the_readme_lists_every_metrics_column_a_run_writes(tmp_path: Path) -> None:
+    """README's table of metrics.csv is the set of columns the trainers write: a grid run with every optional
+    figure on (words to spare, held-out play, the move decay's wait), `--recipe supervised`'s auxiliary losses, a
+    run on a wrapped env, and the Ray backend's own, read from the code that adds them (tests/test_ray.py trains
+    on Ray)."""
+    pytest.importorskip("mpe2")
+    from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
+    from bitcomm.learn import ray_backend
+    from bitcomm.learn.config import make_train_config
+    from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
+    from bitcomm.learn.env_run import train_env
+    from bitcomm.learn.run import train
+
+    def grid(bits: int) -> TaskConfig:
+        return TaskConfig(EnvConfig(size=4, max_steps=16), ChannelConfig(bits=bits))
+
+    optional = {"held_out_every": 16, "held_out_episodes": 8, "move_decay_below": 2.0}  # and 32 words, 16 cells
+    every_figure = make_train_config("reinforced", grid(5), episodes=32, num_envs=16, **optional)
+    train(every_figure, tmp_path / "grid", progress=False)
+    train(make_train_config("supervised", grid(4), episodes=16, num_envs=16), tmp_path / "supervised", progress=False)
+    env = EnvTrainConfig(
+        env="mpe2.simple_speaker_listener_v4:parallel_env",
+        env_kwargs={"max_cycles": 4},
+        channel=EnvChannelConfig(bits=2),
+        episodes=4,
+        num_envs=4,
+        entropy_message_marginal=0.1,
+    )
+    train_env(env, tmp_path / "env", progress=False)
+    written = set(re.findall(r'"(ray/\w+)"', Path(ray_backend.__file__).read_text()))
+    for run in ("grid", "supervised", "env"):
+        with (tmp_path / run / "metrics.csv").open(newline="") as f:
+            written |= set(next(csv.reader(f)))
+    documented = metrics_table()
+    assert not written - documented, f"README's metrics.csv table lacks {sorted(written - documented)}"
+    assert not documented - written, f"README's metrics.csv table lists {sorted(documented - written)}, never written"
+
+
+def test_the_env_flags_table_lists_the_learning_flags_an_env_run_takes() -> None:
+    """docs/env_learning.md's "learning flags" row names exactly those `bitcomm train --env` takes; it refuses the
+    others in one line."""
+    from bitcomm.commands.env_train import SUPPORTED
+
+    text = (ROOT / "docs" / "env_learning.md").read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| learning flags |"))
+    assert set(re.findall(r"--([\w-]+)", row)) == {name.replace("_", "-") for name in SUPPORTED}

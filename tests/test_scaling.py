@@ -36,7 +36,8 @@ def test_cli_small_sizes(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "sc"
     argv = ["scaling", "--sizes", "4,6", "--recipe", "paper", "--repeats", "1", "--out", str(out)]
     assert main(argv) == 0
-    assert "wrote" in capsys.readouterr().out
+    written = [out / name for name in ("scaling.csv", "scaling.md", "scaling.png", "scaling.svg", "provenance.json")]
+    assert f"wrote {', '.join(map(str, written))}" in capsys.readouterr().out  # every file, nothing trained: no curves
     record = json.loads((out / "provenance.json").read_text())  # what made the tables: flags, code, machine
     assert record["settings"]["sizes"] == "4,6" and set(RECORDED) <= set(record)
     with (out / "scaling.csv").open() as f:

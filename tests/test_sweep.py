@@ -54,7 +54,7 @@ def test_cli_writes_csv_and_png(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert record["settings"]["seed"] == 0 and record["settings"]["task"]["env"]["max_steps"] == 40
     assert set(RECORDED) <= set(record)
     assert (out / "sweep.svg").read_text().startswith("<?xml")
-    assert "wrote" in capsys.readouterr().out
+    assert f"wrote {out / 'sweep.csv'}, {out / 'sweep.png'}, {out / 'sweep.svg'} and" in capsys.readouterr().out
     assert main(["sweep", "--param", "speed=1", "--out", str(out)]) == 2
     assert capsys.readouterr().err.count("\n") == 1
 

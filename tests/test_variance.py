@@ -145,7 +145,7 @@ def test_cli_writes_csv_markdown_png_and_json(run_dir: Path, tmp_path: Path, cap
     assert sum(line.startswith("| 16 |") or line.startswith("| 32 |") for line in table) == 6
     assert (out / "variance.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "variance.svg").read_text().startswith("<?xml")
-    assert "wrote" in printed.out
+    assert f"{out / 'variance.png'}, {out / 'variance.svg'} and provenance.json" in printed.out  # every file it wrote
     record = json.loads((out / "provenance.json").read_text())  # what made the figure: flags, task, code, machine
     assert record["settings"]["seed"] == 0 and record["settings"]["task"]["env"]["size"] == 3
     assert set(RECORDED) <= set(record)

@@ -149,10 +149,7 @@ def run(args: argparse.Namespace) -> int:
     md_path = out / "scaling.md"
     table = markdown_table(rows, scfg) + threads_note(torch.get_num_threads(), chosen)
     md_path.write_text(table)
-    written = [csv_path, md_path, plot_scaling(rows, out / "scaling.png")]
-    curves = plot_curves(out, rows)
-    if curves is not None:
-        written.append(curves)
+    written = [csv_path, md_path, *plot_scaling(rows, out / "scaling.png"), *plot_curves(out, rows)]
     written.append(write_provenance(args, out))
     if args.json:
         json.dump([r.to_dict() for r in rows], sys.stdout)

@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     points = run_sweep(sources, task, params, episodes, args.seed)
     out = Path(args.out)
     csv_path = write_csv(points, out / "sweep.csv")
-    png_path = plot_sweep(points, out / "sweep.png", f"from {task_title(task)}")  # each panel varies one of it
+    figures = plot_sweep(points, out / "sweep.png", f"from {task_title(task)}")  # each panel varies one of it
     write_provenance(args, out, task)
     if args.json:
         json.dump([p.row() for p in points], sys.stdout)
@@ -77,5 +77,5 @@ def run(args: argparse.Namespace) -> int:
         lo, hi = p.result.ci95
         print(f"{p.policy:>10}  {p.param}={p.value:<6g} mean episode length {p.result.mean_episode_length:7.2f} "
               f"(95% CI {lo:.2f}-{hi:.2f}), success {p.result.success_rate:.3f}")  # fmt: skip
-    print(f"wrote {csv_path}, {png_path} and provenance.json")
+    print(f"wrote {csv_path}, {', '.join(map(str, figures))} and provenance.json")
     return 0

@@ -166,12 +166,12 @@ def run(args: argparse.Namespace) -> int:
     csv_path = write_csv(rows, out / "variance.csv")
     md_path = out / "variance.md"
     md_path.write_text(markdown_table(rows, f"Gradient variance of the two estimators: {title}"))
-    png_path = plot_variance(rows, out / "variance.png", title)
+    figures = plot_variance(rows, out / "variance.png", title)
     write_provenance(args, out, task)
     if args.json:
         json.dump([r.to_dict() for r in rows], sys.stdout)
         sys.stdout.write("\n")
         return 0
     print(markdown_table(rows), end="")
-    print(f"wrote {csv_path}, {md_path}, {png_path} and provenance.json")
+    print(f"wrote {csv_path}, {md_path}, {', '.join(map(str, figures))} and provenance.json")
     return 0

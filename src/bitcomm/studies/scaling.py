@@ -304,8 +304,9 @@ PANELS = (
 )
 
 
-def plot_scaling(rows: list[ScalingRow], path: str | Path) -> Path:
-    """Each measure against K, log y, a line per head; written as `path` (PNG) and beside it as SVG."""
+def plot_scaling(rows: list[ScalingRow], path: str | Path) -> list[Path]:
+    """Each measure against K, log y, a line per head; written as `path` (PNG) and beside it as SVG; returns both
+    paths."""
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     fig = Figure(figsize=(3.4 * len(PANELS) + 0.4, 3.4), layout="constrained")
@@ -321,17 +322,17 @@ def plot_scaling(rows: list[ScalingRow], path: str | Path) -> Path:
     sizes = sorted({(r.bits, r.size) for r in rows})
     axes[0].legend(fontsize=8)
     fig.suptitle("grid sides " + ", ".join(f"{s} (K={k})" for k, s in sizes), fontsize=10)
-    return save_figure(fig, path)[0]
+    return save_figure(fig, path)
 
 
-def plot_curves(out: Path, rows: list[ScalingRow]) -> Path | None:
+def plot_curves(out: Path, rows: list[ScalingRow]) -> list[Path]:
     """Learning curves of the training runs (from their metrics.csv), a panel per grid size, as
-    scaling_curves.png and .svg; None when nothing was trained."""
+    scaling_curves.png and .svg; returns their paths, none when nothing was trained."""
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     trained = [r for r in rows if r.episodes > 0]
     if not trained:
-        return None
+        return []
     sizes = sorted({r.size for r in trained})
     fig = Figure(figsize=(4 * len(sizes) + 0.4, 3.4), layout="constrained")
     axes = fig.subplots(1, len(sizes), squeeze=False)[0]
@@ -345,4 +346,4 @@ def plot_curves(out: Path, rows: list[ScalingRow]) -> Path | None:
         ax.set_xlabel("episodes")
         ax.set_ylabel("mean episode length")
         ax.legend(fontsize=8)
-    return save_figure(fig, out / "scaling_curves.png")[0]
+    return save_figure(fig, out / "scaling_curves.png")

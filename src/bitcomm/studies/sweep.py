@@ -109,10 +109,10 @@ def write_csv(points: list[SweepPoint], path: str | Path) -> Path:
     return write_rows_csv((p.row() for p in points), CSV_FIELDS, path)
 
 
-def plot_sweep(points: list[SweepPoint], path: str | Path, title: str = "") -> Path:
+def plot_sweep(points: list[SweepPoint], path: str | Path, title: str = "") -> list[Path]:
     """One panel per parameter: mean episode length (95% interval as bars) against its value, a line per policy.
 
-    Written as `path` in PNG and beside it in SVG; returns the PNG's path.
+    Written as `path` in PNG and beside it in SVG; returns both paths.
     """
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
@@ -137,4 +137,4 @@ def plot_sweep(points: list[SweepPoint], path: str | Path, title: str = "") -> P
     axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
-    return save_figure(fig, path)[0]
+    return save_figure(fig, path)

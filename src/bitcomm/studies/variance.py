@@ -390,9 +390,9 @@ def variance_lines(rows: list[VarianceRow], part: str) -> VarianceLines:
     return lines
 
 
-def plot_variance(rows: list[VarianceRow], path: str | Path, title: str = "") -> Path:
+def plot_variance(rows: list[VarianceRow], path: str | Path, title: str = "") -> list[Path]:
     """Variance of each estimator against episodes trained, one panel per part (message, action), log y;
-    written as `path` (PNG) and beside it as SVG."""
+    written as `path` (PNG) and beside it as SVG; returns both paths."""
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     parts = ("message", "action")
@@ -412,4 +412,4 @@ def plot_variance(rows: list[VarianceRow], path: str | Path, title: str = "") ->
         axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
-    return save_figure(fig, path)[0]
+    return save_figure(fig, path)
