@@ -109,3 +109,18 @@ def test_bad_value_is_one_line_and_exit_status_2(flags: list[str], parameter: st
     assert "Traceback" not in proc.stderr
     assert re.search(parameter, lines[0]) and re.search(value, lines[0]), lines[0]
     assert proc.stdout == ""
+
+
+def test_a_reader_that_stops_early_ends_the_command_quietly() -> None:
+    """`bitcomm ... --json | head`: the reader has what it wanted. It was 'error: Broken pipe' and exit status 1; now
+    nothing on stderr and 141, what a shell reports for `cat` in the same place."""
+    proc = subprocess.Popen(
+        [*bitcomm_command(), "baseline", "--episodes", "50", "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # before the command writes: its write meets a closed pipe
+    assert proc.wait(timeout=120) == 141
+    assert proc.stderr.read() == ""

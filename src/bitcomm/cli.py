@@ -6,7 +6,9 @@ full disk, a read-only folder) with one line and exit status 1."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import pkgutil
 import sys
 from typing import Any, NoReturn
@@ -66,6 +68,10 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         print(f"bitcomm {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `bitcomm ... --json | head`: the reader has what it wanted; say nothing, as cat does
+        with contextlib.suppress(OSError, ValueError):  # nor at exit, when Python flushes what stdout still holds
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE, the status a shell reports for a writer whose reader stopped early
     except OSError as err:  # the machine, not the input: a full disk, a quota, a folder made read-only meanwhile
         print(f"bitcomm {args.command}: error: {os_error_line(err)}", file=sys.stderr)
         return 1
