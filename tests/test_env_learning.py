@@ -185,8 +185,8 @@ class OddRewardEnv(SignalEnv):
 class OddObservationEnv(SignalEnv):
     """SignalEnv whose listener's observation at its second step is `odd`: "nan" or "inf" in one number,
     "longer" (4 numbers for a space of 3), "scalar" (one number, which numpy would broadcast over 3), "missing"
-    (no observation for it while it is listed), "state nan" (a `state_space` whose `state()` gives NaN) or "state
-    longer" (a `state()` of 3 numbers after 2)."""
+    (no observation for it while it is listed), "state nan" (a `state_space` whose `state()` gives NaN), "state
+    longer" (a `state()` of 3 numbers after 2), "state dict" or "state none" (a `state()` that is no array)."""
 
     def __init__(self, odd: str = "nan") -> None:
         super().__init__(steps=3)
@@ -194,9 +194,11 @@ class OddObservationEnv(SignalEnv):
         if odd.startswith("state"):
             self.state_space = spaces.Box(0, 1, (2,), np.float32)
 
-    def state(self) -> np.ndarray:
+    def state(self) -> Any:
         if self.odd == "state longer":
             return np.full(3 if self.t >= 1 else 2, 0.5, np.float32)
+        if self.odd in ("state dict", "state none"):
+            return {"x": 0.5} if self.odd == "state dict" else None
         return np.array([0.5, np.nan if self.t >= 1 else 0.5], np.float32)
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
@@ -638,6 +640,9 @@ def test_a_reward_missing_or_not_a_scalar_is_one_line(
         ("state nan", "invalid state()=nan: the env's state must be finite numbers (as float32)"),
         ("state longer", "invalid state() size=3: must keep the size it had at reset (2 numbers once flattened, "
                          "what the critic reads)"),
+        # a traceback from numpy's float32 conversion; None became NaN and was blamed as "not finite"
+        ("state dict", "invalid state()='dict': must be an array of numbers (the critic reads it flattened)"),
+        ("state none", "invalid state()='NoneType': must be an array of numbers (the critic reads it flattened)"),
         ("longer", "invalid observations['listener']['observation'] shape=(4,): must fit Box(0.0, 1.0, (3,), "
                    "float32) (3 numbers once flattened, not 4)"),
         ("scalar", "invalid observations['listener']['observation'] shape=(): must fit Box(0.0, 1.0, (3,), float32) "
