@@ -14,6 +14,7 @@ import json
 import os
 import re
 import signal
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -577,6 +578,18 @@ def test_fixed_agent_gets_no_action_gradient() -> None:
     other2.actions[:, :, 1] = 1 - other2.actions[:, :, 1]
     a2, b2 = _grads(free, ro2, adv2), _grads(free, other2, adv2)
     assert not torch.equal(a2["action_out.weight"], b2["action_out.weight"])
+
+
+def test_every_agent_fixed_normalises_no_action_advantage_and_warns_nothing() -> None:
+    """With every agent's action fixed only the messages learn: no action advantage is left to divide by its
+    standard deviation, which torch computed over no entry with a warning to the user ("degrees of freedom is
+    <= 0"); the action advantages stay zero and the messages' are normalised as before."""
+    cfg = config(channel={"bits": 2, "fixed_actions": {"speaker": 0, "listener": 0}}, adv_norm=True)
+    learner, ro = _batch(cfg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        adv = learner.advantages(ro)
+    assert (adv.action == 0).all() and adv.message.abs().sum() > 0
 
 
 # ---------------------------------------------------------------------------------------------- runs
