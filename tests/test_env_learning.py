@@ -108,6 +108,7 @@ SPACES = {
     "box 2x2": spaces.Box(-1, 1, (2, 2), np.float64),
     "sequence": spaces.Sequence(spaces.Discrete(2)),
     "multidiscrete 100x100": spaces.MultiDiscrete([100, 100]),
+    "multibinary 12": spaces.MultiBinary(12),  # 4096 combinations, the most learning takes
 }
 
 
@@ -831,7 +832,7 @@ def test_a_batch_whose_episodes_outgrow_memory_is_one_line_before_it_does(
     from bitcomm.learn import env_rollout
 
     cfg = config(env=f"{__name__}:WideEnv", env_kwargs={"width": 1000, "steps": 50})
-    per_step = env_rollout.HELD_COPIES * cfg.num_envs * env_rollout.step_bytes(VecEnv(env_factory(cfg), 1).layout)
+    per_step = env_rollout.held_step_bytes(VecEnv(env_factory(cfg), 1).layout, cfg.num_envs, learning=True)
     monkeypatch.setattr(env_rollout, "available_bytes", lambda: 10 * per_step + 1)
     argv = ["train", "--env", cfg.env, "--env-kwargs", json.dumps(cfg.env_kwargs), "--bits", "2", "--num-envs", "8"]
     code = main(
@@ -899,6 +900,31 @@ def test_the_memory_check_counts_what_an_env_run_holds(monkeypatch: pytest.Monke
         "; the first layers read every number observed and of the state: give a narrower --hidden or an "
         "env that observes fewer"
     )
+
+
+def test_the_memory_check_counts_the_critics_queries_of_many_agents_with_many_actions(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The update asks the critic, at each step of the batch, n action baselines and (improved) n per recipient rank,
+    each reading every agent's action one-hot: n^3 times the actions. 12 agents of 4096 actions, all hearing all,
+    read 7 M numbers a step (28 MB; 6 agents took 2 GB for 16 episodes of 10 steps). Uncounted, the check let such
+    a run through to the OOM killer, unsaved; now it is one line before anything is written. An evaluation asks the
+    critic nothing: its batch is not refused for them."""
+    from bitcomm.commands import env_train, flags
+    from bitcomm.learn import env_rollout
+
+    agents = [f"x{i}" for i in range(12)]
+    cfg = config(env=f"{__name__}:SpacesEnv", env_kwargs={"act": "multibinary 12", "agents": agents}, hidden=(16,))
+    monkeypatch.setattr(flags, "available_bytes", lambda: 400 << 20)  # 3 x 8 episodes x 28 MB do not fit
+    with pytest.raises(ConfigError, match=r"^invalid num-envs=8: 8 episodes side by side, for one step \(12 agents"):
+        env_train.check_env([cfg])
+    monkeypatch.setattr(env_rollout, "available_bytes", lambda: 400 << 20)
+    policy = EnvLearner(cfg, EnvLayout.of(env_factory(cfg)())).policy
+    with pytest.raises(ConfigError, match=r"at step 1 .* a step \(0\.63 GB of it the critic's, reading every agent's"):
+        play(VecEnv(env_factory(cfg), 8), policy, np.random.SeedSequence(0), None, learning=True)  # a batch, mid-run
+    assert len(play(VecEnv(env_factory(cfg), 8), policy, np.random.SeedSequence(0), None, flag="episodes").length) == 8
+    monkeypatch.setattr(flags, "available_bytes", lambda: 1 << 30)
+    env_train.check_env([cfg])  # it fits
 
 
 @pytest.mark.usefixtures("trust_test_envs")  # the run is read back
