@@ -397,6 +397,66 @@ def test_an_env_that_lists_an_agent_outside_possible_agents_is_one_line(joins: i
     )
 
 
+class OlderApi(Toy):
+    """Toy whose `reset` or `step` returns what PettingZoo's API does not: `odd` is "reset obs only" (gym's and an
+    older PettingZoo's reset), "reset infos None", "step dones" (four values, one `dones` dict) or "step infos
+    None"."""
+
+    def __init__(self, odd: str) -> None:
+        super().__init__(steps=4)
+        self.odd = odd
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> Any:
+        obs, infos = super().reset(seed, options)
+        return {"reset obs only": obs, "reset infos None": (obs, None)}.get(self.odd, (obs, infos))
+
+    def step(self, actions: dict[str, Any]) -> Any:
+        obs, rewards, terminated, truncated, infos = super().step(actions)
+        if self.odd == "step dones":
+            return obs, rewards, {a: terminated[a] or truncated[a] for a in terminated}, infos
+        return obs, rewards, terminated, truncated, None if self.odd == "step infos None" else infos
+
+
+RESET = "a PettingZoo ParallelEnv's reset returns (observations, infos), a dict keyed by agent each"
+STEP = "a PettingZoo ParallelEnv's step returns (observations, rewards, terminations, truncations, infos), a dict"
+
+
+@pytest.mark.parametrize(
+    ("odd", "line"),
+    [
+        ("reset obs only", f"invalid env.reset()='dict': {RESET}"),  # "too many values to unpack"
+        ("reset infos None", f"invalid env.reset()='tuple(dict, NoneType)': {RESET}"),
+        ("step dones", f"invalid env.step()='tuple(dict, dict, dict, dict)': {STEP}"),  # "not enough values"
+        ("step infos None", f"invalid env.step()='tuple(dict, dict, dict, dict, NoneType)': {STEP}"),
+    ],
+)
+def test_an_env_that_returns_other_than_the_api_says_is_one_line(odd: str, line: str) -> None:
+    """Not an unpacking error or an AttributeError from inside the wrapper: what came back, named, and what a
+    ParallelEnv returns. (Two agents' observations alone were even unpacked as their names.)"""
+    env = BitChannel(OlderApi(odd), bits=2)
+    with pytest.raises(ConfigError) as err:
+        env.reset(seed=0)
+        env.step(dict.fromkeys("abc", {"action": 0, "message": np.ones(2, np.int8)}))
+    assert str(err.value).startswith(line) and "\n" not in str(err.value), str(err.value)
+
+
+class SeedlessReset(Toy):
+    """Toy whose `reset` takes no seed (nor options)."""
+
+    def reset(self) -> tuple[dict, dict]:  # type: ignore[override]
+        return super().reset()
+
+
+def test_an_env_whose_reset_takes_no_seed_is_one_line() -> None:
+    """Every episode is seeded through `reset(seed=...)`: refused when wrapped, not a TypeError at the first reset."""
+    with pytest.raises(ConfigError) as err:
+        BitChannel(SeedlessReset())
+    assert str(err.value) == (
+        "invalid env.reset='reset()': must take seed=, as a PettingZoo ParallelEnv's reset(seed=None, options=None) "
+        "does: every episode is seeded through it"
+    )
+
+
 def test_fixed_actions_replace_the_inner_action() -> None:
     toy = Toy(steps=3)
     env = BitChannel(toy, bits=2, fixed_actions={"b": 2})

@@ -14,6 +14,7 @@ import json
 import os
 import re
 import signal
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -107,6 +108,7 @@ SPACES = {
     "box 2x2": spaces.Box(-1, 1, (2, 2), np.float64),
     "sequence": spaces.Sequence(spaces.Discrete(2)),
     "multidiscrete 100x100": spaces.MultiDiscrete([100, 100]),
+    "multibinary 12": spaces.MultiBinary(12),  # 4096 combinations, the most learning takes
 }
 
 
@@ -185,8 +187,8 @@ class OddRewardEnv(SignalEnv):
 class OddObservationEnv(SignalEnv):
     """SignalEnv whose listener's observation at its second step is `odd`: "nan" or "inf" in one number,
     "longer" (4 numbers for a space of 3), "scalar" (one number, which numpy would broadcast over 3), "missing"
-    (no observation for it while it is listed), "state nan" (a `state_space` whose `state()` gives NaN) or "state
-    longer" (a `state()` of 3 numbers after 2)."""
+    (no observation for it while it is listed), "state nan" (a `state_space` whose `state()` gives NaN), "state
+    longer" (a `state()` of 3 numbers after 2), "state dict" or "state none" (a `state()` that is no array)."""
 
     def __init__(self, odd: str = "nan") -> None:
         super().__init__(steps=3)
@@ -194,9 +196,11 @@ class OddObservationEnv(SignalEnv):
         if odd.startswith("state"):
             self.state_space = spaces.Box(0, 1, (2,), np.float32)
 
-    def state(self) -> np.ndarray:
+    def state(self) -> Any:
         if self.odd == "state longer":
             return np.full(3 if self.t >= 1 else 2, 0.5, np.float32)
+        if self.odd in ("state dict", "state none"):
+            return {"x": 0.5} if self.odd == "state dict" else None
         return np.array([0.5, np.nan if self.t >= 1 else 0.5], np.float32)
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
@@ -577,6 +581,18 @@ def test_fixed_agent_gets_no_action_gradient() -> None:
     assert not torch.equal(a2["action_out.weight"], b2["action_out.weight"])
 
 
+def test_every_agent_fixed_normalises_no_action_advantage_and_warns_nothing() -> None:
+    """With every agent's action fixed only the messages learn: no action advantage is left to divide by its
+    standard deviation, which torch computed over no entry with a warning to the user ("degrees of freedom is
+    <= 0"); the action advantages stay zero and the messages' are normalised as before."""
+    cfg = config(channel={"bits": 2, "fixed_actions": {"speaker": 0, "listener": 0}}, adv_norm=True)
+    learner, ro = _batch(cfg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        adv = learner.advantages(ro)
+    assert (adv.action == 0).all() and adv.message.abs().sum() > 0
+
+
 # ---------------------------------------------------------------------------------------------- runs
 def test_resume_gives_the_uninterrupted_run(tmp_path: Path) -> None:
     cfg = config(episodes=32)
@@ -638,6 +654,9 @@ def test_a_reward_missing_or_not_a_scalar_is_one_line(
         ("state nan", "invalid state()=nan: the env's state must be finite numbers (as float32)"),
         ("state longer", "invalid state() size=3: must keep the size it had at reset (2 numbers once flattened, "
                          "what the critic reads)"),
+        # a traceback from numpy's float32 conversion; None became NaN and was blamed as "not finite"
+        ("state dict", "invalid state()='dict': must be an array of numbers (the critic reads it flattened)"),
+        ("state none", "invalid state()='NoneType': must be an array of numbers (the critic reads it flattened)"),
         ("longer", "invalid observations['listener']['observation'] shape=(4,): must fit Box(0.0, 1.0, (3,), "
                    "float32) (3 numbers once flattened, not 4)"),
         ("scalar", "invalid observations['listener']['observation'] shape=(): must fit Box(0.0, 1.0, (3,), float32) "
@@ -813,7 +832,7 @@ def test_a_batch_whose_episodes_outgrow_memory_is_one_line_before_it_does(
     from bitcomm.learn import env_rollout
 
     cfg = config(env=f"{__name__}:WideEnv", env_kwargs={"width": 1000, "steps": 50})
-    per_step = env_rollout.HELD_COPIES * cfg.num_envs * env_rollout.step_bytes(VecEnv(env_factory(cfg), 1).layout)
+    per_step = env_rollout.held_step_bytes(VecEnv(env_factory(cfg), 1).layout, cfg.num_envs, learning=True)
     monkeypatch.setattr(env_rollout, "available_bytes", lambda: 10 * per_step + 1)
     argv = ["train", "--env", cfg.env, "--env-kwargs", json.dumps(cfg.env_kwargs), "--bits", "2", "--num-envs", "8"]
     code = main(
@@ -881,6 +900,31 @@ def test_the_memory_check_counts_what_an_env_run_holds(monkeypatch: pytest.Monke
         "; the first layers read every number observed and of the state: give a narrower --hidden or an "
         "env that observes fewer"
     )
+
+
+def test_the_memory_check_counts_the_critics_queries_of_many_agents_with_many_actions(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The update asks the critic, at each step of the batch, n action baselines and (improved) n per recipient rank,
+    each reading every agent's action one-hot: n^3 times the actions. 12 agents of 4096 actions, all hearing all,
+    read 7 M numbers a step (28 MB; 6 agents took 2 GB for 16 episodes of 10 steps). Uncounted, the check let such
+    a run through to the OOM killer, unsaved; now it is one line before anything is written. An evaluation asks the
+    critic nothing: its batch is not refused for them."""
+    from bitcomm.commands import env_train, flags
+    from bitcomm.learn import env_rollout
+
+    agents = [f"x{i}" for i in range(12)]
+    cfg = config(env=f"{__name__}:SpacesEnv", env_kwargs={"act": "multibinary 12", "agents": agents}, hidden=(16,))
+    monkeypatch.setattr(flags, "available_bytes", lambda: 400 << 20)  # 3 x 8 episodes x 28 MB do not fit
+    with pytest.raises(ConfigError, match=r"^invalid num-envs=8: 8 episodes side by side, for one step \(12 agents"):
+        env_train.check_env([cfg])
+    monkeypatch.setattr(env_rollout, "available_bytes", lambda: 400 << 20)
+    policy = EnvLearner(cfg, EnvLayout.of(env_factory(cfg)())).policy
+    with pytest.raises(ConfigError, match=r"at step 1 .* a step \(0\.63 GB of it the critic's, reading every agent's"):
+        play(VecEnv(env_factory(cfg), 8), policy, np.random.SeedSequence(0), None, learning=True)  # a batch, mid-run
+    assert len(play(VecEnv(env_factory(cfg), 8), policy, np.random.SeedSequence(0), None, flag="episodes").length) == 8
+    monkeypatch.setattr(flags, "available_bytes", lambda: 1 << 30)
+    env_train.check_env([cfg])  # it fits
 
 
 @pytest.mark.usefixtures("trust_test_envs")  # the run is read back

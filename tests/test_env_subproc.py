@@ -205,12 +205,12 @@ def test_a_run_whose_worker_dies_saves_what_it_learned_and_resumes_as_if_never_s
     whole = train_env(cfg, tmp_path / "whole", progress=False)
     calls = []
 
-    def dies_in_batch_3(vec: VecEnv, policy: Any, seed: Any, generator: torch.Generator) -> EnvRollout:
+    def dies_in_batch_3(vec: VecEnv, policy: Any, seed: Any, generator: torch.Generator, **kw: Any) -> EnvRollout:
         calls.append(1)
         if len(calls) == 3:
             torch.rand(3, generator=generator), torch.rand(3)  # part of the batch was sampled
             raise WorkerDied("env worker 1 of 2 (pid 1) running relay died (exit code -9)")
-        return play(vec, policy, seed, generator)
+        return play(vec, policy, seed, generator, **kw)
 
     monkeypatch.setattr(env_run, "play", dies_in_batch_3)
     with pytest.raises(ConfigError, match=r"died \(exit code -9\); saved after 10 episodes as .*--resume goes on"):

@@ -166,7 +166,7 @@ def check_env(configs: Sequence[EnvTrainConfig], processes: int = 1, eval_episod
         what = f"the networks ({seen}; {processes} run(s) at once)"
         check_memory("hidden", h[0], processes * layers * 16, what, hint)
         batch = processes * cfg.num_envs
-        buffers = processes * layers * 16 + held_step_bytes(layout, batch)
+        buffers = processes * layers * 16 + held_step_bytes(layout, batch, learning=True)
         onehot = 0
         if cfg.messages == "onehot":  # the policy's output and message input, V1's message input (x16: Adam)
             readers = 2 if cfg.estimator == "standard" else 1

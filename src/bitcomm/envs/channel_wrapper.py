@@ -18,6 +18,7 @@ example: docs/channel_wrapper.md.
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Mapping
 from typing import Any
 
@@ -38,6 +39,10 @@ StepReturn = tuple[
     dict[AgentID, bool],
     dict[AgentID, dict[str, Any]],
 ]
+RESET_PARTS = ("observations", "infos")
+"""What a ParallelEnv's `reset` returns, a dict keyed by agent each."""
+STEP_PARTS = ("observations", "rewards", "terminations", "truncations", "infos")
+"""What a ParallelEnv's `step` returns, a dict keyed by agent each."""
 SEED_SALT = 0xB17
 """Mixed into `reset(seed=s)` for the channel's noise, so it never shares a stream with the inner env."""
 
@@ -97,6 +102,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
                 "must be a PettingZoo ParallelEnv (pettingzoo.utils.aec_to_parallel converts an AEC env)",
             )
         _check_seed(seed)
+        _check_reset_takes_seed(env)
         self.inner = env
         self.possible_agents: list[AgentID] = list(env.possible_agents)
         if not self.possible_agents or len(set(self.possible_agents)) != len(self.possible_agents):
@@ -164,7 +170,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         self._alive.reset()
         # options only when given: an env whose reset() takes no options is wrapped as it is
         extra = {} if options is None else {"options": options}
-        observations, infos = self.inner.reset(seed=seed, **extra)
+        observations, infos = _parts(self.inner.reset(seed=seed, **extra), "reset()", RESET_PARTS)
         self.agents = _listed(self.inner, self._index)
         empty = np.zeros((self._n,) + self.slot_senders.shape[1:] + (self.bits,), dtype=np.int8)
         return self._augment(observations, empty), infos
@@ -189,7 +195,9 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         sent[0, rows] = self._messages([actions[a]["message"] for a in live], live)
         alive = np.zeros((1, self._n, 1), dtype=np.uint8)
         alive[0, rows] = 1
-        observations, rewards, terminations, truncations, infos = self.inner.step(inner_actions)
+        observations, rewards, terminations, truncations, infos = _parts(
+            self.inner.step(inner_actions), "step()", STEP_PARTS
+        )
         dropped = self._channel.transmit(sent)[0]
         self._alive.transmit(alive)
         received = (self._channel.received()[0] * self._alive.received()[0]).astype(np.int8)
@@ -231,6 +239,37 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
 
     def close(self) -> None:
         self.inner.close()
+
+
+def _check_reset_takes_seed(env: ParallelEnv) -> None:
+    """One line unless the env's `reset` takes `seed=` (a ParallelEnv's is `reset(seed=None, options=None)`): every
+    episode is seeded through it, and one without it failed at the first reset with a TypeError from inside the
+    wrapper. A `reset` whose signature cannot be read is let through."""
+    try:
+        params = inspect.signature(env.reset).parameters
+    except (TypeError, ValueError):
+        return
+    if "seed" not in params and not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        raise bad_value(
+            "env.reset", f"reset({', '.join(params)})", "must take seed=, as a PettingZoo ParallelEnv's "
+            "reset(seed=None, options=None) does: every episode is seeded through it",
+        )  # fmt: skip
+
+
+def _parts(returned: Any, call: str, names: tuple[str, ...]) -> tuple[Any, ...]:
+    """What the inner env's `reset()` or `step()` returned, as its parts, each a dict keyed by agent, or one line
+    naming what came instead: an env written for an older API (reset's observations alone, step's four values
+    with one `dones`) or a None for a dict stopped in an unpacking error or an AttributeError inside the wrapper."""
+    if isinstance(returned, (tuple, list)):
+        if len(returned) == len(names) and all(isinstance(part, Mapping) for part in returned):
+            return tuple(returned)
+        what = f"{type(returned).__name__}({', '.join(type(part).__name__ for part in returned)})"
+    else:
+        what = type(returned).__name__
+    raise bad_value(
+        f"env.{call}", what, f"a PettingZoo ParallelEnv's {call.rstrip('()')} returns ({', '.join(names)}), a dict "
+        "keyed by agent each (an env written for an older API must be updated)",
+    )  # fmt: skip
 
 
 def _listed(env: ParallelEnv, known: Mapping[AgentID, int]) -> list[AgentID]:

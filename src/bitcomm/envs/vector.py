@@ -161,13 +161,21 @@ class EnvLayout:
 def inner_state(env: Any) -> np.ndarray | None:
     """The env's global state flattened, or None where it has none: PettingZoo's rule is that an env with a
     state has a `state_space` (BitChannel keeps the inner one). Without it `state()` may be PettingZoo's default,
-    which raises, or break otherwise (classic envs keep a dict named `state`, so theirs raises TypeError)."""
+    which raises, or break otherwise (classic envs keep a dict named `state`, so theirs raises TypeError). A state
+    that is not an array of numbers (a dict, None) is one line."""
     if not hasattr(env, "state_space"):
         return None
     try:
-        return np.asarray(env.state(), dtype=np.float32).ravel()
+        state = env.state()
     except (AttributeError, NotImplementedError):
         return None
+    try:
+        values = np.asarray(state)
+    except ValueError:  # a ragged list
+        values = np.asarray(None)
+    if values.dtype.kind not in "biuf":  # a dict, a string, None (which float32 made NaN)
+        raise bad_value("state()", type(state).__name__, "must be an array of numbers (the critic reads it flattened)")
+    return values.astype(np.float32).ravel()
 
 
 class VecObservation(NamedTuple):

@@ -15,6 +15,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from bitcomm.config import slot_table
 from bitcomm.envs.subproc_vector import SubprocVecEnv
 from bitcomm.envs.vector import EnvLayout, VecEnv, VecStep, WrappedEnvMaker
 from bitcomm.errors import bad_value
@@ -62,29 +63,42 @@ def batch_seeds(seed: np.random.SeedSequence, num_envs: int) -> np.ndarray:
     return seed.generate_state(num_envs)
 
 
-def step_bytes(layout: EnvLayout) -> int:
+def step_bytes(layout: EnvLayout, learning: bool = False) -> int:
     """What one copy's step adds to a batch's buffers (`EnvRollout`): observations and state in float32, messages
-    received and sent in uint8, actions (int64 indices or float32 vectors), two log-probabilities, three flags."""
+    received and sent in uint8, actions (int64 indices or float32 vectors), two log-probabilities, three flags;
+    and, for a batch learned from (`learning`), the critic's queries about the step in the update
+    (`EnvLearner.critic_values`, float32): n action baselines and, with the improved estimator, n per recipient
+    rank, each reading every agent's action (one-hot for a discrete one) and a "given" flag. Those grow as n^3 times
+    the actions: 20 agents with 5 actions each read 48,000 numbers a step, 6 with 4096 read 885,000 (measured: 2.0 GB
+    resident for 16 episodes of 10 steps); an evaluation asks the critic nothing."""
     action = 8 if layout.discrete else 4 * layout.action_dim
     per_agent = 4 * layout.obs_dim + (layout.slots + 1) * layout.bits + action + 8 + 2
-    return layout.n * per_agent + 4 * layout.state_size + 6
+    queries = layout.n * (1 + slot_table(layout.recipients.T).shape[1]) if learning else 0
+    critic = 4 * queries * layout.n * (layout.action_dim + 1)
+    return layout.n * per_agent + 4 * layout.state_size + 6 + critic
 
 
-def held_step_bytes(layout: EnvLayout, episodes: int) -> int:
-    """What one step of `episodes` side by side costs at the batch's peak (`HELD_COPIES` times its buffers): what
-    `play` refuses by, and what a command checks before it trains or evaluates."""
-    return HELD_COPIES * episodes * step_bytes(layout)
+def held_step_bytes(layout: EnvLayout, episodes: int, learning: bool = False) -> int:
+    """What one step of `episodes` side by side costs at the batch's peak (`HELD_COPIES` times its buffers, the
+    critic's queries with them where `learning`): what `play` refuses by, and what a command checks before it trains
+    or evaluates."""
+    return HELD_COPIES * episodes * step_bytes(layout, learning)
 
 
-def too_long(layout: EnvLayout, episodes: int, steps: int, have: int, flag: str, tables: int = 0) -> Exception:
+def too_long(
+    layout: EnvLayout, episodes: int, steps: int, have: int, flag: str, tables: int = 0, learning: bool = False
+) -> Exception:
     """The one line for `episodes` side by side whose buffers would outgrow `have` bytes at step `steps`, besides
-    the `tables` a one-hot policy acts on at each step."""
-    step = held_step_bytes(layout, episodes) / BYTES_PER_GB
+    the `tables` a one-hot policy acts on at each step; the critic's queries (`learning`) are named where they are
+    most of a step, as the agents' observations and state then do not say why it is large."""
+    step = held_step_bytes(layout, episodes, learning) / BYTES_PER_GB
+    critic = step - held_step_bytes(layout, episodes) / BYTES_PER_GB
+    queries = f" ({critic:.2f} GB of it the critic's, reading every agent's action)" if critic > step / 2 else ""
     acting = f" besides {tables / BYTES_PER_GB:.2f} GB of one-hot tables it acts on" if tables else ""
     return bad_value(
         flag, episodes, f"{episodes} episodes side by side outgrow memory at step {steps:,} ({layout.n} agents "
-        f"observing {layout.obs_dim:,} numbers, a state of {layout.state_size:,}: about {step:.2f} GB a step, kept "
-        f"to the episodes' end{acting}; {have / BYTES_PER_GB:.1f} GB available); give fewer --{flag}, or shorter "
+        f"observing {layout.obs_dim:,} numbers, a state of {layout.state_size:,}: about {step:.2f} GB a step{queries}, "
+        f"kept to the episodes' end{acting}; {have / BYTES_PER_GB:.1f} GB available); give fewer --{flag}, or shorter "
         "episodes (the env's own option in --env-kwargs, e.g. max_cycles)",
     )  # fmt: skip
 
@@ -98,6 +112,7 @@ def play(
     greedy: bool = False,
     on_step: Callable[[VecStep], object] | None = None,
     flag: str = "num-envs",
+    learning: bool = False,
 ) -> EnvRollout:
     """Play one first episode in each of the B copies, sampling (or, `greedy`, the most likely action and
     message); actions and messages of absent agents are drawn but never sent. `on_step(step)` runs after each
@@ -105,12 +120,12 @@ def play(
 
     An episode's length is not known before it ends: a step whose buffers (`HELD_COPIES` times), with the tables a
     one-hot policy acts on, would outgrow the memory available when the batch began is refused with one line naming
-    `flag`, the option that set B."""
+    `flag`, the option that set B (with the critic's queries about it where the batch is for `learning`)."""
     B = vec.num_envs
     have = available_bytes()
     layout = vec.layout
     tables = B * acting_bytes(layout.n, layout.bits, layout.slots) if policy.head.name == "onehot" else 0
-    per_step = held_step_bytes(layout, B)
+    per_step = held_step_bytes(layout, B, learning)
     ob = vec.reset(batch_seeds(seed, B))
     dist = policy.actions
     steps: list[tuple[np.ndarray, ...]] = []
@@ -118,7 +133,7 @@ def play(
     length, team_return = np.zeros(B, np.int64), np.zeros(B)
     while valid_now.any():
         if (len(steps) + 1) * per_step + tables > have:
-            raise too_long(layout, B, len(steps) + 1, have, flag, tables)
+            raise too_long(layout, B, len(steps) + 1, have, flag, tables, learning)
         obs, received = torch.from_numpy(ob.obs), torch.from_numpy(ob.received)
         act_out, msg_logits = policy(obs, received)
         actions, bits = policy.draw(act_out, msg_logits, greedy, generator)

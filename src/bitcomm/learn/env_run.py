@@ -82,7 +82,8 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
         t0 = time.perf_counter()
         rng = generator.get_state(), torch.get_rng_state()
         try:  # rollout: batch k's episodes are fixed by (seed, k)
-            ro = play(vec, learner.policy, np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,)), generator)
+            seed = np.random.SeedSequence(cfg.seed, spawn_key=(prog.batches,))
+            ro = play(vec, learner.policy, seed, generator, learning=True)
         except (Exception, KeyboardInterrupt) as err:  # a worker died (`WorkerDied`), the env gave what it may not
             if not prog.batches:  # (a NaN reward...) or its own code raised, or Ctrl-C came again; nothing learned
                 raise  # yet: no checkpoint, so that the same command starts afresh

@@ -417,7 +417,12 @@ def _spread(x: torch.Tensor, valid: torch.Tensor, it: torch.Tensor, ib: torch.Te
 
 
 def scaled(a: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """`a` divided by the standard deviation of its entries where `valid` (unchanged when that is not finite):
-    `adv_norm`, for the grid's learner and the wrapped-env learner alike."""
-    std = a[valid].std()
+    """`a` divided by the standard deviation of its entries where `valid` (unchanged when that is not finite, or
+    when fewer than two entries are valid, where torch's `std` warns and gives NaN: every agent's action fixed by
+    `fixed_actions` leaves no action advantage): `adv_norm`, for the grid's learner and the wrapped-env learner
+    alike."""
+    values = a[valid]
+    if values.numel() < 2:
+        return a
+    std = values.std()
     return a / (std + 1e-8) if torch.isfinite(std) else a
