@@ -62,7 +62,8 @@ def load_env_policy(path: Path | str, typed_env: str | None = None) -> tuple[Env
     check_recorded_env(cfg.env, info["path"], typed_env)
     with make_vec(cfg, 1) as vec:  # one copy, to read the layout; closed, as an env may hold a window or files
         layout = vec.layout
-    policy = MlpPolicy(layout, cfg.messages, cfg.hidden, cfg.obs_norm)
+    with torch.random.fork_rng(devices=[]):  # its random initial weights, replaced at once: the caller's draws stay
+        policy = MlpPolicy(layout, cfg.messages, cfg.hidden, cfg.obs_norm)
     try:
         policy.load_state_dict(weights["policy"])
     except (KeyError, RuntimeError) as err:

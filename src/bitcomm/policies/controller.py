@@ -86,7 +86,9 @@ class Controller:
         weights, info = load_grid_weights(path)
         config = info["config"]
         try:
-            net = PolicyNet(TaskConfig.from_dict(config["task"]), model_from_dict(config["model"]))
+            # its random initial weights, replaced at once, must not draw from the caller's torch generator
+            with torch.random.fork_rng(devices=[]):
+                net = PolicyNet(TaskConfig.from_dict(config["task"]), model_from_dict(config["model"]))
             net.load_state_dict(weights["policy"])
         except (KeyError, TypeError, AttributeError, RuntimeError) as err:
             raise ConfigError(
