@@ -136,16 +136,59 @@ def test_dir_lists_every_public_name() -> None:
 def test_a_type_checker_sees_the_lazy_names_typed_and_refuses_a_name_bitcomm_lacks(tmp_path: Path) -> None:
     """The package ships `py.typed`: a user's mypy must type `bitcomm.Controller.load` (not Any, as a module
     `__getattr__` would make every name) and flag a typo such as `bitcomm.train`, which fails at run time."""
+    out = user_mypy(tmp_path, "import bitcomm\n\nreveal_type(bitcomm.Controller.load)\nbitcomm.train\n")
+    assert "-> bitcomm.policies.controller.Controller" in out, out
+    assert 'Module has no attribute "train"' in out, out
+
+
+def user_mypy(tmp_path: Path, code: str, skip: tuple[str, ...] = ("torch", "numpy", "gymnasium", "pettingzoo")) -> str:
+    """mypy's report on a user's script `code` that imports bitcomm from this source tree (the packages `skip`
+    names read as Any, which is quicker)."""
     from mypy import api
 
     src = Path(__file__).resolve().parents[1] / "src"
-    skipped = "".join(f"[mypy-{m}.*]\nfollow_imports = skip\n" for m in ("torch", "numpy", "gymnasium", "pettingzoo"))
+    skipped = "".join(f"[mypy-{m}.*]\nfollow_imports = skip\n" for m in skip)
     (tmp_path / "mypy.ini").write_text(f"[mypy]\nmypy_path = {src}\nfollow_imports = silent\n{skipped}")
-    (tmp_path / "user.py").write_text("import bitcomm\n\nreveal_type(bitcomm.Controller.load)\nbitcomm.train\n")
+    (tmp_path / "user.py").write_text(code)
     out, _, _ = api.run(["--config-file", str(tmp_path / "mypy.ini"), "--cache-dir", str(tmp_path / "cache"),
                          str(tmp_path / "user.py")])  # fmt: skip
-    assert "-> bitcomm.policies.controller.Controller" in out, out
-    assert 'Module has no attribute "train"' in out, out
+    return out
+
+
+def test_a_type_checker_takes_a_topology_as_tuples_or_as_lists_where_bitcomm_does(tmp_path: Path) -> None:
+    """`BitChannel` and `EnvChannelConfig` take `(sender, receiver)` pairs as tuples (docs/channel_wrapper.md) and as
+    lists (JSON's, docs/env_learning.md) alike, but were annotated with one each: a typed user's mypy refused the
+    other form, which runs."""
+    code = """from typing import Any
+from bitcomm import BitChannel
+from bitcomm.learn.env_config import EnvChannelConfig
+
+def check(env: Any) -> None:
+    for pairs in ([("speaker_0", "listener_0")], [["speaker_0", "listener_0"]], (("speaker_0", "listener_0"),)):
+        EnvChannelConfig(bits=3, topology=pairs)
+        BitChannel(env, bits=3, topology=pairs)
+"""
+    out = user_mypy(tmp_path, code)
+    assert "Success: no issues found" in out, out
+
+
+def test_a_type_checker_takes_a_numpy_integer_seed_where_bitcomm_does(tmp_path: Path) -> None:
+    """A seed or an episode count from numpy (`rng.integers()`, a sweep's `np.arange`) plays as the Python int
+    (`check_seed`), but `evaluate`, `evaluate_env` and the controllers' `load` were annotated `int`: a typed user's
+    mypy refused what runs."""
+    code = """import numpy as np
+from bitcomm import Controller, EnvController, evaluate
+from bitcomm.learn.env_eval import evaluate_env
+from bitcomm.policies.onnx_policy import OnnxController
+
+seed, episodes = np.int64(3), np.int64(20)
+evaluate(Controller.load("runs/a", seed=seed), episodes=episodes, seed=seed)
+evaluate_env("runs/e", episodes, seed=seed)
+EnvController.load("runs/e", seed=seed)
+OnnxController.load("policy.onnx", seed=seed)
+"""
+    out = user_mypy(tmp_path, code, skip=("torch", "gymnasium", "pettingzoo"))
+    assert "Success: no issues found" in out, out
 
 
 def python_blocks() -> Iterator[tuple[str, str]]:

@@ -163,6 +163,18 @@ def test_training_leaves_the_callers_torch_generator_as_it_was(tmp_path: Path) -
     assert torch.equal(torch.rand(3), expected)
 
 
+def test_loading_a_run_leaves_the_callers_torch_generator_as_it_was(counted_run: Path) -> None:
+    """`EnvController.load` (and `evaluate_env`, which loads) built the network's random initial weights from torch's
+    global generator before reading the trained ones over them, moving a notebook's draws on."""
+    typed = f"{MODULE}:CountedEnv"
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    EnvController.load(counted_run, typed_env=typed)
+    evaluate_env(counted_run, 2, seed=0, typed_env=typed)
+    assert torch.equal(torch.rand(3), expected)
+
+
 def test_an_episode_count_or_seed_evaluation_cannot_play_is_one_line(counted_run: Path) -> None:
     """0 episodes were an IndexError from an empty batch, a negative seed numpy's "expected non-negative integer"
     (the grid's `evaluate` and `bitcomm eval` named both already)."""

@@ -302,6 +302,18 @@ def test_training_leaves_the_callers_torch_generator_as_it_was(mode: str, tmp_pa
     assert torch.equal(torch.rand(3), expected)
 
 
+def test_loading_a_run_leaves_the_callers_torch_generator_as_it_was(trained: Path) -> None:
+    """`Controller.load` built its network's random initial weights from torch's global generator before reading
+    the trained ones over them: a notebook's draws after it depended on whether it had loaded a policy."""
+    from bitcomm.policies.controller import Controller
+
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    Controller.load(trained)
+    assert torch.equal(torch.rand(3), expected)
+
+
 # ---------------------------------------------------------------------------------------------- lock
 def test_a_second_writer_is_refused_with_the_holders_pid(run: Path, tmp_path: Path, capsys) -> None:
     fresh = tmp_path / "fresh"

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 
@@ -30,6 +30,10 @@ MAX_JOBS = 1024
 """Processes or threads at once (`--jobs`, `--threads`, `OnnxController.load(threads=)`)."""
 
 
+Integer: TypeAlias = int | np.integer
+"""A Python or a numpy integer (`rng.integers()` gives one): what a seed or an episode count takes (`check_seed`)."""
+
+
 def check_seed(value: object) -> int:
     """`value` as a Python int, or one error line unless it is a seed every stream takes (an integer in [0,
     MAX_SEED]): numpy's SeedSequence refuses a negative one and torch's manual_seed one past 64 bits, each in words
@@ -39,12 +43,12 @@ def check_seed(value: object) -> int:
     return int(value)  # type: ignore[call-overload]
 
 
-def check_evaluation(episodes: object, seed: object) -> None:
-    """One error line unless an evaluation can play `episodes` (an integer >= 1; 0 was an IndexError from an empty
-    batch) seeded by `seed` (`check_seed`)."""
+def check_evaluation(episodes: object, seed: object) -> tuple[int, int]:
+    """`(episodes, seed)` as Python ints, or one error line unless an evaluation can play `episodes` (an integer >= 1;
+    0 was an IndexError from an empty batch) seeded by `seed` (`check_seed`)."""
     if not is_integer(episodes) or episodes < 1:  # type: ignore[operator]
         raise bad_value("episodes", episodes, "must be an integer >= 1")
-    check_seed(seed)
+    return int(episodes), check_seed(seed)  # type: ignore[call-overload]
 
 
 def entries(name: str, value: object, allowed: str) -> tuple[Any, ...]:

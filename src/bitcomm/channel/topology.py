@@ -13,7 +13,10 @@ import numpy as np
 
 from bitcomm.errors import bad_value
 
-Topology: TypeAlias = str | Iterable[tuple[str, str]] | Callable[[str, str], bool] | np.ndarray
+Edge: TypeAlias = tuple[str, str] | list[str]
+"""One `(sender, receiver)` pair of agent names, a tuple or, as JSON (`--topology`, config.json) writes it, a list."""
+
+Topology: TypeAlias = str | Iterable[Edge] | Callable[[str, str], bool] | np.ndarray
 """`"all"`, `"ring"`, `(sender, receiver)` name pairs, a rule `(sender, receiver) -> bool`, or an `(n, n)` bool
 recipient matrix."""
 

@@ -9,9 +9,11 @@ synchronous PPO-style recipe of `reinforced`, sized for small vector-observation
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from bitcomm.channel.topology import Edge
 from bitcomm.config import check_seed, plain_fields
 from bitcomm.envs.subproc_vector import check_workers
 from bitcomm.errors import bad_value, check_int, check_number, check_rate, is_number
@@ -27,7 +29,7 @@ class EnvChannelConfig:
     delay: int = 1
     flip_prob: float = 0.0
     drop_prob: float = 0.0
-    topology: str | list[list[str]] = "all"
+    topology: str | Sequence[Edge] = "all"
     """`all`, `ring`, or a list of `[sender, receiver]` agent-name pairs (a callable or a matrix is not JSON: pass
     one to `BitChannel` directly)."""
     fixed_actions: dict[str, Any] | None = None

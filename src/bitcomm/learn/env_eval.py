@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import load_env_weights
-from bitcomm.config import check_evaluation
+from bitcomm.config import Integer, check_evaluation
 from bitcomm.envs.factory import check_recorded_env
 from bitcomm.errors import ConfigError, one_line
 from bitcomm.learn.env_config import EnvTrainConfig
@@ -62,7 +62,8 @@ def load_env_policy(path: Path | str, typed_env: str | None = None) -> tuple[Env
     check_recorded_env(cfg.env, info["path"], typed_env)
     with make_vec(cfg, 1) as vec:  # one copy, to read the layout; closed, as an env may hold a window or files
         layout = vec.layout
-    policy = MlpPolicy(layout, cfg.messages, cfg.hidden, cfg.obs_norm)
+    with torch.random.fork_rng(devices=[]):  # its random initial weights, replaced at once: the caller's draws stay
+        policy = MlpPolicy(layout, cfg.messages, cfg.hidden, cfg.obs_norm)
     try:
         policy.load_state_dict(weights["policy"])
     except (KeyError, RuntimeError) as err:
@@ -74,15 +75,15 @@ def load_env_policy(path: Path | str, typed_env: str | None = None) -> tuple[Env
 
 def evaluate_env(
     path: Path | str,
-    episodes: int,
-    seed: int,
+    episodes: Integer,
+    seed: Integer,
     drop_prob: float | None = None,
     greedy: bool = False,
     typed_env: str | None = None,
 ) -> EnvEvalResult:
     """Play `episodes` seeded episodes with the policy of `path` on its env (channel drops changed by `drop_prob`;
     `typed_env` as in `load_env_policy`)."""
-    check_evaluation(episodes, seed)  # before the env is built
+    episodes, seed = check_evaluation(episodes, seed)  # before the env is built
     cfg, policy = load_env_policy(path, typed_env)
     return evaluate_env_policy(cfg, policy, episodes, seed, drop_prob, greedy)
 
@@ -90,15 +91,15 @@ def evaluate_env(
 def evaluate_env_policy(
     cfg: EnvTrainConfig,
     policy: MlpPolicy,
-    episodes: int,
-    seed: int,
+    episodes: Integer,
+    seed: Integer,
     drop_prob: float | None = None,
     greedy: bool = False,
 ) -> EnvEvalResult:
     """`evaluate_env` for a policy `load_env_policy` read (so `bitcomm eval` can check, from its layout, that
     `min(episodes, EVAL_CHUNK)` episodes side by side fit before they play)."""
-    check_evaluation(episodes, seed)
-    generator = torch.Generator().manual_seed(int(seed))  # a numpy integer too, which torch refuses
+    episodes, seed = check_evaluation(episodes, seed)  # Python ints: torch's manual_seed refuses a numpy one
+    generator = torch.Generator().manual_seed(seed)
     returns: list[np.ndarray] = []
     lengths: list[np.ndarray] = []
     chunk = 0

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import load_grid_weights
-from bitcomm.config import TaskConfig, check_bool, check_seed
+from bitcomm.config import Integer, TaskConfig, check_bool, check_seed
 from bitcomm.errors import ConfigError, check_instance, one_line
 from bitcomm.policies.agent import act
 from bitcomm.policies.agent_policies import agent_batch
@@ -34,9 +34,10 @@ def model_from_dict(d: dict[str, Any]) -> ModelConfig:
     return ModelConfig(**values)
 
 
-Seed = int | np.random.SeedSequence | None
-"""What a deployed policy's sampling stream takes, as `OnnxController`'s: an int, a `SeedSequence` (one spawned per
-robot, say), or None for fresh entropy from the OS (two robots loaded with one int draw the same numbers)."""
+Seed = Integer | np.random.SeedSequence | None
+"""What a deployed policy's sampling stream takes, as `OnnxController`'s: an integer (Python's or numpy's), a
+`SeedSequence` (one spawned per robot, say), or None for fresh entropy from the OS (two robots loaded with one int
+draw the same numbers)."""
 
 
 def seeded_generator(seed: Seed) -> torch.Generator:
@@ -86,7 +87,9 @@ class Controller:
         weights, info = load_grid_weights(path)
         config = info["config"]
         try:
-            net = PolicyNet(TaskConfig.from_dict(config["task"]), model_from_dict(config["model"]))
+            # its random initial weights, replaced at once, must not draw from the caller's torch generator
+            with torch.random.fork_rng(devices=[]):
+                net = PolicyNet(TaskConfig.from_dict(config["task"]), model_from_dict(config["model"]))
             net.load_state_dict(weights["policy"])
         except (KeyError, TypeError, AttributeError, RuntimeError) as err:
             raise ConfigError(

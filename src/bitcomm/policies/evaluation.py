@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from bitcomm.config import TaskConfig, check_evaluation
+from bitcomm.config import Integer, TaskConfig, check_evaluation
 from bitcomm.envs.core import N_MOVES, StepResult
 from bitcomm.envs.vec import Observation, VecGoalExchange
 from bitcomm.errors import ConfigError, bad_value
@@ -131,14 +131,14 @@ def run_first_episodes(
 
 
 def evaluate(
-    policy: Policy | Controller, task: TaskConfig | None = None, episodes: int = 2000, seed: int = 0
+    policy: Policy | Controller, task: TaskConfig | None = None, episodes: Integer = 2000, seed: Integer = 0
 ) -> EvalResult:
     """Mean episode length (95% interval), mean team return and success rate over a seeded set.
 
     `policy` is a batched `Policy` (an `Observation` in, `(B, n)` moves and `(B, n, K)` bits out) or a trained
     `bitcomm.Controller`, which samples by `seed` (`evaluate_controller` plays it greedily) and brings its task:
     `evaluate(Controller.load("runs/demo"))`. Any other policy needs `task`."""
-    check_evaluation(episodes, seed)
+    episodes, seed = check_evaluation(episodes, seed)
     if not callable(policy):
         from bitcomm.policies.controller import Controller
 
@@ -154,7 +154,7 @@ def evaluate(
 
 
 def evaluate_checkpoint(
-    path: str | Path, episodes: int = 2000, seed: int = 0, greedy: bool = False, task: TaskConfig | None = None
+    path: str | Path, episodes: Integer = 2000, seed: Integer = 0, greedy: bool = False, task: TaskConfig | None = None
 ) -> EvalResult:
     """`evaluate` for a trained policy (run folder or checkpoint file), acting through `Controller` as
     `bitcomm eval` and a deployed robot do; `task` defaults to the one it was trained on."""
@@ -164,7 +164,7 @@ def evaluate_checkpoint(
 
 
 def evaluate_controller(
-    controller: Controller, episodes: int, seed: int, greedy: bool = False, task: TaskConfig | None = None
+    controller: Controller, episodes: Integer, seed: Integer, greedy: bool = False, task: TaskConfig | None = None
 ) -> EvalResult:
     """`evaluate` for a `bitcomm.Controller` (loaded, or wrapping a policy in training); `task` defaults to the one it
     was trained on. It samples from a generator seeded by `seed`, as `Controller.load(path, seed)` starts, not from the
