@@ -1078,6 +1078,24 @@ def test_an_a3c_worker_killed_outright_stops_the_run_saved_in_one_line(tmp_path:
     assert played == (len((out / "metrics.csv").read_text().splitlines()) - 1) * 16 and str(played) in lines[-1]
 
 
+def test_an_a3c_run_from_a_script_without_the_main_guard_names_the_guard(tmp_path: Path) -> None:
+    """multiprocessing's spawn runs the script again in each worker, where Python stops it; the run's line said only
+    that worker 0 died (exit code 1). It now names the guard the script needs."""
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from bitcomm import ChannelConfig, EnvConfig, TaskConfig\n"
+        "from bitcomm.learn.config import make_train_config\n"
+        "from bitcomm.learn.run import train\n"
+        "task = TaskConfig(EnvConfig(size=3, max_steps=8), ChannelConfig(bits=4))\n"
+        "cfg = make_train_config('reinforced', task, mode='a3c', workers=1, num_envs=8, episodes=16)\n"
+        f"train(cfg, {str(tmp_path / 'run')!r}, progress=False)\n"
+    )
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=ENV, timeout=120)
+    last = done.stderr.strip().splitlines()[-1]
+    assert "a3c worker 0" in last and "died (exit code 1)" in last, done.stderr
+    assert 'under `if __name__ == "__main__":`' in last
+
+
 def test_an_a3c_run_resumed_on_ray_is_one_line_that_can_be_followed(tmp_path: Path, capsys) -> None:
     """Ray trains in sync mode and a resume keeps the mode: the line was the config's own, which asked to change
     --mode (refused on a resume)."""

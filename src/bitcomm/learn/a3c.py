@@ -263,6 +263,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     last_save = time.monotonic()
     done: set[int] = set()
     died: dict[int, int] = {}  # worker -> exit code, of the workers killed (not one that reported an error)
+    heard: set[int] = set()  # the workers that sent a batch
     with stop_after_batch() as stop_asked:  # till the workers are gone: a signal meanwhile is a request
         try:
             with deaf_children():  # till `ignore_stop_signals`: killed mid-batch, a worker could hold the lock
@@ -290,7 +291,8 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 if msg[0] == "done":
                     done.add(msg[1])
                     continue
-                _, _, length, team_return, success, sent_greedy, stats = msg
+                _, w, length, team_return, success, sent_greedy, stats = msg
+                heard.add(w)
                 prog.wall_s = wall0 + time.perf_counter() - t_start
                 learner.senders_wait.watch(prog.rolling_length, cfg.schedule_progress(prog.episodes))  # as sync's
                 formed.value = _or_unset(learner.senders_wait.start)
@@ -318,6 +320,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 raise ConfigError(
                     f"a3c worker {w} (pid {procs[w].pid}) died (exit code {code}); the others stopped after their "
                     f"batch, saved after {prog.episodes} episodes as {path}; --resume goes on"
+                    + (NO_BATCH_HINT if code == 1 and w not in heard else "")  # an error, not a kill
                 )
             return saved_or_stopped(stop_asked(), prog.episodes, path, bar)
         finally:
@@ -329,6 +332,14 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 p.join(timeout=5)
             bar.close()
             logger.close()
+
+
+NO_BATCH_HINT = (
+    " (it failed before its first batch: from a script, a3c's workers, started afresh by multiprocessing's spawn, "
+    'need the training call under `if __name__ == "__main__":`; the worker\'s own message is above)'
+)
+"""What most often kills a worker before it plays: a script without the guard spawn needs runs its training again in
+each worker, and Python stops it there."""
 
 
 def _or_unset(start: float | None) -> float:
