@@ -10,9 +10,13 @@ robot would.
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 from bitcomm.commands.common import add_task_flags, print_result
 from bitcomm.commands.flags import EVAL_EPISODES, SEED, add_threads_flag, check_eval, use_threads
+
+if TYPE_CHECKING:
+    from bitcomm.policies.evaluation import EvalResult
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -41,18 +45,19 @@ def run(args: argparse.Namespace) -> int:
 
     use_threads(args)
     if str(args.run_path).endswith(".onnx"):
-        return evaluate_onnx(args)
-    if env_run_config(args.run_path) is not None:
+        result = evaluate_onnx(args)
+    elif env_run_config(args.run_path) is not None:
         return env_train.evaluate(args)
-    controller = Controller.load(args.run_path, seed=args.seed)
-    task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", fixed=POLICY_INPUTS)
-    check_eval(task, args.episodes, onehot=controller.messages == "onehot")
-    result = evaluate_controller(controller, args.episodes, args.seed, args.greedy, task)
+    else:
+        controller = Controller.load(args.run_path, seed=args.seed)
+        task = resolve_task(args, controller.task, label=f"RUN {args.run_path!r}", fixed=POLICY_INPUTS)
+        check_eval(task, args.episodes, onehot=controller.messages == "onehot")
+        result = evaluate_controller(controller, args.episodes, args.seed, args.greedy, task)
     print_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
     return 0
 
 
-def evaluate_onnx(args: argparse.Namespace) -> int:
+def evaluate_onnx(args: argparse.Namespace) -> EvalResult:
     """An exported policy on the simulator, run by onnxruntime as a robot runs it: its greedy play is the run's
     to the step; sampled play draws from numpy's stream, not torch's, so it matches in distribution."""
     from bitcomm.policies.agent_policies import BatchedPolicy
@@ -62,6 +67,4 @@ def evaluate_onnx(args: argparse.Namespace) -> int:
     source = PolicySource("onnx", greedy=args.greedy, onnx=args.run_path)
     task = source.task_from_args(args)
     check_eval(task, args.episodes, onehot=source.onehot())
-    result = evaluate(BatchedPolicy(source.build(task, seed=args.seed)), task, args.episodes, args.seed)
-    print_result(result, args.json, f"{args.run_path} ({'greedy' if args.greedy else 'sampling'})")
-    return 0
+    return evaluate(BatchedPolicy(source.build(task, seed=args.seed)), task, args.episodes, args.seed)

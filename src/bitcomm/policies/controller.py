@@ -72,6 +72,11 @@ class Controller:
         """Checkpoint facts: path, episodes and batches trained."""
         self.generator = seeded_generator(seed)
 
+    def with_seed(self, seed: Seed) -> Controller:
+        """The same network (shared, not copied) sampling from a stream of its own seeded by `seed`: what a measure
+        that must not depend on, or move, this controller's stream plays."""
+        return Controller(self.policy, self.config, seed, self.info)
+
     @property
     def task(self) -> TaskConfig:
         return self.policy.task

@@ -171,11 +171,10 @@ def evaluate_controller(
     controller's own: the figure is a function of the policy and `seed`, the same each time a notebook cell reruns,
     and the controller's generator goes on where it was."""
     from bitcomm.policies.agent_policies import BatchedPolicy, ControllerAgent
-    from bitcomm.policies.controller import Controller
 
     if task is not None:
         check_inputs_fit(task, controller.task)
-    seeded = Controller(controller.policy, controller.config, seed, controller.info)  # the same network, shared
+    seeded = controller.with_seed(seed)
     return evaluate(BatchedPolicy(ControllerAgent(seeded, greedy=greedy)), task or controller.task, episodes, seed)
 
 

@@ -196,7 +196,7 @@ class PolicySource:
             return ControllerAgent(OnnxController.load(str(self.onnx), seed=0 if seed is None else seed), self.greedy)
         loaded = load_controller(self.run)
         if seed is not None:
-            loaded = type(loaded)(loaded.policy, loaded.config, seed, loaded.info)
+            loaded = loaded.with_seed(seed)
         return ControllerAgent(loaded, greedy=self.greedy)
 
     def to_dict(self) -> dict[str, Any]:
