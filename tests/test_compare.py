@@ -505,6 +505,29 @@ def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
 
 
+def test_timeouts_second_copy_is_dropped_however_soon_after_the_first_it_comes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`timeout` signals the study, then its process group. The guard that drops the group's copy was put in place
+    only once the first signal's `Stopped` had reached the study's clean-up: now and then the copy came first, and the
+    study then waited, for good, on a run that nobody had asked to stop (CI, once). It is in place from the start."""
+    from bitcomm import stop_signals
+    from bitcomm.stop_signals import Stopped, repeats_count_once, sigterm_interrupts
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with sigterm_interrupts(), repeats_count_once():
+            with pytest.raises(Stopped):
+                signal.raise_signal(signal.SIGTERM)
+            signal.raise_signal(signal.SIGTERM)  # the group's copy, before any clean-up began: dropped
+            signal.raise_signal(signal.SIGINT)  # Ctrl-C as well, within the same moment
+            monkeypatch.setattr(stop_signals, "REPEAT_S", 0.0)
+            with pytest.raises(KeyboardInterrupt):  # one later stops at once
+                signal.raise_signal(signal.SIGINT)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
 def test_timeout_of_a_study_saves_the_batch_each_run_is_on(tmp_path: Path, signum: signal.Signals) -> None:
     """`timeout -s INT` (or plain `timeout`, SIGTERM) signals the study, then its process group: the second signal

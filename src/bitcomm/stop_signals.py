@@ -16,10 +16,16 @@ from __future__ import annotations
 import contextlib
 import signal
 import threading
+import time
 from collections.abc import Iterator
+from typing import Any
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 """What `bitcomm.learn.run_folder.stop_after_batch` takes in a trainer."""
+
+REPEAT_S = 0.5
+"""A stop signal repeated sooner than this is the first one again: `timeout` signals its command, then the
+command's process group, which holds the command too; a loaded machine can run the handler in between."""
 
 
 class Stopped(KeyboardInterrupt):
@@ -48,6 +54,35 @@ def sigterm_interrupts() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+@contextlib.contextmanager
+def repeats_count_once() -> Iterator[None]:
+    """Inside, the first stop signal goes to its handler (`Stopped`, KeyboardInterrupt) and the same or the other one
+    within `REPEAT_S` of it is dropped, as that one again; one later goes to its handler too (a second Ctrl-C: stop
+    at once). Installed before the first signal can come, so that the group's copy cannot land while the first
+    one's clean-up (a study stopping its runs, a deployment's summary) has yet to begin: it did, now and then, and
+    cut that clean-up short. Only stop signals that a Python handler has, and only in the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    taken = {s: h for s in STOP_SIGNALS if callable(h := signal.getsignal(s))}
+    first: list[float] = []
+
+    def once(signum: int, frame: Any) -> None:
+        now = time.monotonic()
+        if first and now - first[0] < REPEAT_S:
+            return
+        first[:] = first or [now]
+        taken[signal.Signals(signum)](signum, frame)
+
+    for s in taken:
+        signal.signal(s, once)
+    try:
+        yield
+    finally:
+        for s, handler in taken.items():
+            signal.signal(s, handler)
 
 
 @contextlib.contextmanager

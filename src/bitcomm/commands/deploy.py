@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from bitcomm.deploy import DeployError, DeployResult, run_deploy
     from bitcomm.policies.agent_policies import BatchedPolicy
     from bitcomm.policies.evaluation import evaluate
-    from bitcomm.stop_signals import sigterm_interrupts
+    from bitcomm.stop_signals import repeats_count_once, sigterm_interrupts
 
     episodes = args.episodes
     source = source_from_args(args)
@@ -103,17 +103,19 @@ def run(args: argparse.Namespace) -> int:
             summary = DeployResult(played, task.env.max_steps).summary
             print(f"deployed, {len(played)} of {episodes} episodes before it stopped: {_line(summary)}", file=log)
 
-    try:
-        with sigterm_interrupts():  # `kill PID` or a scheduler's limit stops it as Ctrl-C does, with its summary
+    # `kill PID` or a scheduler's limit stops it as Ctrl-C does, with its summary; `timeout`'s second copy, to the
+    # process group, must not cut the agents' shutdown or the summary short
+    with sigterm_interrupts(), repeats_count_once():
+        try:
             result = run_deploy(source, task, episodes, args.seed, args.deadline_ms, args.timeout, on_episode=report)
             simulated = evaluate(BatchedPolicy(source.build(task, seed=args.seed)), task, episodes, args.seed)
-    except DeployError as err:
-        summarise_played()
-        print(f"bitcomm deploy: error: {err}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: what was played still counts; `bitcomm.cli` says it stopped
-        summarise_played()
-        raise
+        except DeployError as err:
+            summarise_played()
+            print(f"bitcomm deploy: error: {err}", file=sys.stderr)
+            return 1
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM: what was played still counts; `bitcomm.cli` says it stopped
+            summarise_played()
+            raise
     deployed = result.summary
     if args.json:
         out = deployed.to_dict()

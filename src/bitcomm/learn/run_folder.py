@@ -58,7 +58,7 @@ from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
 from bitcomm.learn.resume_rules import changed_on_resume
 from bitcomm.plotting import save_figure
 from bitcomm.run_lock import run_lock
-from bitcomm.stop_signals import Stopped
+from bitcomm.stop_signals import REPEAT_S, Stopped
 
 ConfigT = TypeVar("ConfigT")
 
@@ -720,11 +720,6 @@ def _stoppable_signals() -> list[signal.Signals]:
     if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL and multiprocessing.parent_process() is None:
         wanted.append(signal.SIGTERM)
     return wanted
-
-
-REPEAT_S = 0.5
-"""A stop signal repeated sooner than this is the first one again: `timeout` signals its command, then the
-command's process group, which holds the command too; a loaded machine can run the handler in between."""
 
 
 @contextlib.contextmanager

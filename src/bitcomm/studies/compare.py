@@ -40,11 +40,10 @@ import math
 import multiprocessing
 import os
 import signal
-import threading
 import time
 import typing
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -60,7 +59,7 @@ from bitcomm.learn.resume_rules import SAVING, flat
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policies.source import TASK_FLAGS
 from bitcomm.stats import mean_interval
-from bitcomm.stop_signals import sigterm_interrupts
+from bitcomm.stop_signals import repeats_count_once, sigterm_interrupts
 from bitcomm.studies.tables import task_title
 
 if TYPE_CHECKING:
@@ -490,56 +489,35 @@ def execute_all(
     log(f"{plural(len(runs), 'run', 'runs')}, {done} finished and evaluated; {len(todo)} to go on {workers}")
     ctx = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(),))
-    with pool, sigterm_interrupts():
-        futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
+    # the repeats' guard is in place before any signal comes: `timeout`'s second copy, landing before the runs were
+    # asked to stop, left the pool waiting on a run of hours
+    with pool, sigterm_interrupts(), repeats_count_once():
         try:
+            futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
             for k, future in enumerate(as_completed(futures), 1):
                 run, status = futures[future], future.result()
                 log(f"[{k}/{len(todo)}] {describe(run, status, cfg)}")
         except BaseException:  # Ctrl-C, SIGTERM or an alarm in this process only: stop the running runs
-            with repeats_count_once(time.monotonic()):
-                # no public way before 3.14; taken before shutdown, which drops the pool's reference to its processes
-                running = list((getattr(pool, "_processes", None) or {}).values())
+            # no public way before 3.14; taken before shutdown, which drops the pool's reference to its processes
+            running = list((getattr(pool, "_processes", None) or {}).values())
+            try:
                 pool.shutdown(wait=False, cancel_futures=True)
+            finally:
                 stop_runs(running)  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
             raise
-
-
-@contextlib.contextmanager
-def repeats_count_once(since: float) -> Iterator[None]:
-    """While the study stops its runs after an interrupt at `since`, the same interrupt within `REPEAT_S` of it is that
-    one again: `timeout` signals the study, then its process group, which holds the study too, and the second signal
-    ended the runs at once, unsaved (`bitcomm.learn.run_folder.REPEAT_S`). One later still ends them at once."""
-    from bitcomm.learn.run_folder import REPEAT_S
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    taken = {s: h for s in (signal.SIGINT, signal.SIGTERM) if callable(h := signal.getsignal(s))}
-
-    def again(signum: int, frame: Any) -> None:
-        if time.monotonic() - since >= REPEAT_S:
-            taken[signal.Signals(signum)](signum, frame)
-
-    for s in taken:
-        signal.signal(s, again)
-    try:
-        yield
-    finally:
-        for s, handler in taken.items():
-            signal.signal(s, handler)
 
 
 def stop_runs(processes: list[Any], grace_s: float = STOP_GRACE_S) -> None:
     """Ask each worker to stop its run after the batch it is on and save it (SIGINT, as Ctrl-C would: the workers are
     out of the terminal's process group, `_init_worker`), and wait up to `grace_s` for them to end; then, or on a
-    second interrupt (`repeats_count_once`), end them at once. Ended at once, a run stopped
+    second interrupt (`bitcomm.stop_signals.repeats_count_once`), end them at once. Ended at once, a run stopped
     before its first checkpoint (every `checkpoint_seconds`) would start again from nothing."""
-    for process in processes:
-        if process.is_alive():
-            os.kill(process.pid, signal.SIGINT)
     deadline = time.monotonic() + grace_s
     try:
+        for process in processes:
+            if process.is_alive():
+                with contextlib.suppress(ProcessLookupError):  # it ended in between
+                    os.kill(process.pid, signal.SIGINT)
         for process in processes:
             process.join(max(0.0, deadline - time.monotonic()))
     finally:
