@@ -332,12 +332,24 @@ def test_a_move_or_message_that_lands_after_train_max_steps_is_refused_naming_tr
     """A training episode must let a move take effect and a message arrive; the task's own max_steps (20) is not
     what is short, so the error names train_max_steps, not max_steps."""
     slow_moves = dataclasses.replace(TINY, env=dataclasses.replace(TINY.env, act_delay=5))
-    with pytest.raises(ConfigError, match=r"^invalid act-delay=5: must be < train_max_steps \(5\)$"):
+    with pytest.raises(ConfigError, match=r"^invalid act_delay=5: must be < train_max_steps \(5\)$"):
         make_train_config("reinforced", slow_moves, train_max_steps=5)
     slow_messages = dataclasses.replace(TINY, channel=dataclasses.replace(TINY.channel, delay=5))
     with pytest.raises(ConfigError, match=r"^invalid delay=5: must be < train_max_steps \(5\)$"):
         make_train_config("reinforced", slow_messages, train_max_steps=5)
     assert make_train_config("reinforced", slow_moves, train_max_steps=6).training_task.env.act_delay == 5
+
+
+def test_a_max_steps_no_message_can_arrive_in_is_refused_naming_it_not_the_least_delay():
+    """`train --max-steps 1` was refused as `invalid delay=1`, the default delay the user never typed and cannot
+    lower: where delay is already the least it can be, the line names the episode's length."""
+
+    with pytest.raises(ConfigError, match=r"^invalid max_steps=1: must be > delay \(1\): a message must arrive"):
+        TaskConfig(EnvConfig(size=4, max_steps=1), ChannelConfig(bits=4))
+    with pytest.raises(ConfigError, match=r"^invalid delay=3: must be < max_steps \(3\)"):
+        TaskConfig(EnvConfig(size=4, max_steps=3), ChannelConfig(bits=4, delay=3))
+    with pytest.raises(ConfigError, match=r"^invalid train_max_steps=1: must be > delay \(1\)"):
+        make_train_config("reinforced", TINY, train_max_steps=1)
 
 
 def test_uniform_move_pulls_a_move_the_policy_gave_up_back():

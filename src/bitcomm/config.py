@@ -122,6 +122,12 @@ def slot_table(recipients: np.ndarray) -> np.ndarray:
     return table
 
 
+MIN_DELAY = 1
+"""A message sent at step t arrives at t + 1 at the earliest."""
+
+ARRIVE_WITHIN = "a message must arrive within an episode"
+
+
 @dataclass(frozen=True)
 class EnvConfig:
     """The goal-exchange grid world (SPEC section 1)."""
@@ -187,7 +193,7 @@ class ChannelConfig:
 
     def __post_init__(self) -> None:
         _count(self, "bits", "bits", 1, 30, "bits a message carries")
-        _count(self, "delay", "delay", 1, MAX_STEPS, "a message arrives one step later at the earliest")
+        _count(self, "delay", "delay", MIN_DELAY, MAX_STEPS, "a message arrives one step later at the earliest")
         _probability(self, "flip_prob", "flip_prob")
         _probability(self, "drop_prob", "drop_prob")
         if self.recipients is not None:
@@ -218,11 +224,9 @@ class TaskConfig:
         check_instance("env", self.env, EnvConfig, "a bitcomm.EnvConfig, e.g. EnvConfig(size=4)")
         check_instance("channel", self.channel, ChannelConfig, "a bitcomm.ChannelConfig, e.g. ChannelConfig(bits=4)")
         if self.channel.delay >= self.env.max_steps:
-            raise bad_value(
-                "delay",
-                self.channel.delay,
-                f"must be < max_steps ({self.env.max_steps}): a message must arrive within an episode",
-            )
+            if self.channel.delay == MIN_DELAY:  # delay cannot be lowered: what is short is max_steps
+                raise bad_value("max_steps", self.env.max_steps, f"must be > delay ({MIN_DELAY}): {ARRIVE_WITHIN}")
+            raise bad_value("delay", self.channel.delay, f"must be < max_steps ({self.env.max_steps}): {ARRIVE_WITHIN}")
         n = self.env.n_agents
         recipients = self.recipient_lists
         if len(recipients) != n:
