@@ -316,8 +316,9 @@ def test_an_address_where_nothing_listens_gets_one_line_quickly(
     t0 = time.monotonic()
     code = main([*argv, "--address", address, "--out", str(out)])
     assert time.monotonic() - t0 < 20
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(lines) == 1, lines
+    printed = capsys.readouterr()
+    lines = printed.err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and not printed.out, (lines, printed.out)  # no "run folder:" line either
     assert lines[0].startswith(f"bitcomm train: error: invalid address='{address}': cannot reach a Ray cluster there (")
     assert "Connection refused" in lines[0]
     assert not out.exists()  # the address is checked before the run folder is made
