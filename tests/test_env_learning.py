@@ -737,6 +737,7 @@ def test_ctrl_c_again_while_a_batch_plays_on_saves_the_batches_before_and_resume
         train_env(cfg, tmp_path / "run", progress=False)
     saved = tmp_path / "run" / "checkpoints" / "ckpt_000000008.safetensors"
     assert err.value.exit_code == 128 + signal.SIGINT and saved.is_file()
+    assert (err.value.checkpoint, err.value.episodes) == (saved, 8)  # for a notebook, which reads no printed line
     assert capsys.readouterr().err.strip() == f"stopped after 8 episodes on SIGINT, saved as {saved}; --resume goes on"
     resumed = train_env(cfg, tmp_path / "run", resume=True, progress=False)  # fresh copies: 2 resets, no ^C
     calm = dataclasses.replace(cfg, env_kwargs={"reward": "interrupt", "from_reset": 10**9})

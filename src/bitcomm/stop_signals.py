@@ -18,6 +18,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -30,11 +31,14 @@ command's process group, which holds the command too; a loaded machine can run t
 
 class Stopped(KeyboardInterrupt):
     """A command stopped on a signal (a trainer once it has saved the batch it was on); `exit_code` is the shell's
-    128 + signal, which `bitcomm.cli` exits with."""
+    128 + signal, which `bitcomm.cli` exits with. A trainer's carries the checkpoint it saved and the episodes in it,
+    so that a notebook or a script that caught it can resume or evaluate without reading the printed line."""
 
-    def __init__(self, signum: int) -> None:
+    def __init__(self, signum: int, checkpoint: Path | None = None, episodes: int | None = None) -> None:
         super().__init__(signal.Signals(signum).name)
         self.exit_code = 128 + signum
+        self.checkpoint = checkpoint
+        self.episodes = episodes
 
 
 @contextlib.contextmanager

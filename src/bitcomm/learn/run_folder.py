@@ -694,7 +694,7 @@ def stopped(signum: int, episodes: int, path: Path) -> Stopped:
     `stop_after_batch` asked it to stop."""
     name = signal.Signals(signum).name
     print(f"stopped after {episodes} episodes on {name}, saved as {path}; --resume goes on", file=sys.stderr)
-    return Stopped(signum)
+    return Stopped(signum, path, episodes)
 
 
 def saved_or_stopped(signum: int | None, episodes: int, path: Path, bar: Any) -> Path:
