@@ -174,14 +174,19 @@ def check(env: Any) -> None:
 
 def test_a_type_checker_takes_a_numpy_integer_seed_where_bitcomm_does(tmp_path: Path) -> None:
     """A seed or an episode count from numpy (`rng.integers()`, a sweep's `np.arange`) plays as the Python int
-    (`check_seed`), but `evaluate`, `evaluate_env` and the controllers' `load` were annotated `int`: a typed user's
-    mypy refused what runs."""
-    code = """import numpy as np
+    (`check_seed`), but `evaluate`, `evaluate_env`, the controllers' `load` and `BitChannel` were annotated `int`: a
+    typed user's mypy refused what runs."""
+    code = """from typing import Any
+
+import numpy as np
 from bitcomm import Controller, EnvController, evaluate
 from bitcomm.learn.env_eval import evaluate_env
+from bitcomm.envs.channel_wrapper import BitChannel
 from bitcomm.policies.onnx_policy import OnnxController
 
 seed, episodes = np.int64(3), np.int64(20)
+env: Any = None  # what the env is does not matter here, only the seed
+BitChannel(env, seed=seed)
 evaluate(Controller.load("runs/a", seed=seed), episodes=episodes, seed=seed)
 evaluate_env("runs/e", episodes, seed=seed)
 EnvController.load("runs/e", seed=seed)

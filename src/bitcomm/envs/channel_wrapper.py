@@ -28,7 +28,7 @@ from pettingzoo import ParallelEnv
 
 from bitcomm.channel.core import Channel
 from bitcomm.channel.topology import Topology, recipients_of
-from bitcomm.config import ChannelConfig, slot_table
+from bitcomm.config import ChannelConfig, Integer, slot_table
 from bitcomm.errors import bad_value
 
 AgentID = str
@@ -92,7 +92,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         flip_prob: float = 0.0,
         drop_prob: float = 0.0,
         topology: Topology = "all",
-        seed: int | None = None,
+        seed: Integer | None = None,
         fixed_actions: Mapping[str, Any] | None = None,
     ) -> None:
         if not isinstance(env, ParallelEnv):
