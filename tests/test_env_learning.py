@@ -696,6 +696,26 @@ def test_a_discrete_observation_outside_its_space_is_one_line(obs: str, value: A
     assert flat_row(layout, 0, layout.obs_spaces[0].sample()).size == layout.obs_sizes[0]
 
 
+@pytest.mark.parametrize(
+    ("obs", "value", "shape"),
+    [
+        ("image", np.zeros((3, 2, 2), np.uint8), "(3, 2, 2) is not the space's (2, 2, 3)"),  # a transposed image
+        ("box 2x2", np.zeros(4), "(4,) is not the space's (2, 2)"),
+        ("dict", {"cell": 0, "near": np.zeros((2, 1))}, None),  # an axis of length 1 moves no number
+        ("multibinary", np.zeros((1, 2), np.int8), None),
+    ],
+)
+def test_an_observation_of_the_right_size_in_another_shape_is_one_line(obs: str, value: Any, shape: str | None) -> None:
+    """Its numbers were read in the space's order without a word: a (3, 2, 2) image for a (2, 2, 3) space reached
+    the network with its pixels scrambled. Axes of length 1 change no number's place and pass."""
+    layout = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"obs": obs})), 1).layout
+    if shape is None:
+        assert flat_row(layout, 0, value).size == layout.obs_sizes[0]
+        return
+    with pytest.raises(ConfigError, match=re.escape(f"does not fit {layout.obs_spaces[0]} (shape {shape}: which")):
+        flat_row(layout, 0, value)
+
+
 def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:
     """The first copy gives NaN rewards from its third reset (spaces, batch 0, batch 1): batch 0 is learned and
     saved, as when a worker dies, so that the run loses nothing when its env is mended."""

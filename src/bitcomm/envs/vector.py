@@ -330,44 +330,56 @@ def agent_rows(
 
 def flat_row(layout: EnvLayout, i: int, observation: Any) -> np.ndarray:
     """Agent i's inner observation flattened (`flat_observation`), or one line naming it if it does not fit the
-    agent's space: a value gymnasium cannot flatten, or one of another size (which would be cut, broadcast or
-    refused by numpy without a word about the env)."""
+    agent's space: a value gymnasium cannot flatten, one of another size (which would be cut, broadcast or
+    refused by numpy without a word about the env), or one whose values would be read as others (`outside_space`)."""
     space, where = layout.obs_spaces[i], f"observations[{layout.agents[i]!r}]['observation']"
     try:
         flat = flat_observation(space, observation)
-        outside = discrete_outside(space, observation)
+        outside = outside_space(space, observation)
     except (TypeError, ValueError, IndexError, KeyError, AssertionError) as err:
         raise bad_value(where, type(observation).__name__, f"does not fit {space} ({one_line(err)})") from None
-    if outside is not None:
-        raise bad_value(where, type(observation).__name__, f"does not fit {space} ({outside})")
     if flat.size != layout.obs_sizes[i]:
         raise bad_value(
             f"{where} shape", np.shape(observation),
             f"must fit {space} ({layout.obs_sizes[i]} numbers once flattened, not {flat.size})",
         )  # fmt: skip
+    if outside is not None:
+        raise bad_value(where, type(observation).__name__, f"does not fit {space} ({outside})")
     return flat
 
 
-def discrete_outside(space: spaces.Space, observation: Any) -> str | None:
-    """What in an observation gymnasium flattened lies outside its discrete parts, or None: its one-hot of a Discrete
-    indexes from the end for a value below `start` (-1 of Discrete(5) reads as 4) and a MultiBinary entry passes as
-    it is (a 2 is not a bit), so the network would read another value without a word."""
-    if isinstance(space, spaces.Discrete):
-        low, high, x = space.start, space.start + space.n, np.asarray(observation)
-    elif isinstance(space, spaces.MultiDiscrete):
-        low, high, x = space.start, space.start + space.nvec, np.asarray(observation)
-    elif isinstance(space, spaces.MultiBinary):
-        low, high, x = 0, 2, np.asarray(observation)
-    elif isinstance(space, spaces.Dict):
-        return next((w for key, part in space.spaces.items() if (w := discrete_outside(part, observation[key]))), None)
-    elif isinstance(space, spaces.Tuple):
+def outside_space(space: spaces.Space, observation: Any) -> str | None:
+    """What in an observation gymnasium flattened it would read as another value, or None: its one-hot of a
+    Discrete indexes from the end for a value below `start` (-1 of Discrete(5) reads as 4), a MultiBinary entry
+    passes as it is (a 2 is not a bit), and an array of the right size in another shape is read in the space's
+    order (a (5, 4, 3) image for a (4, 5, 3) space: its pixels scrambled), so the network would read other values
+    without a word. Axes of length 1 are left out of the comparison: they change no number's place."""
+    if isinstance(space, spaces.Dict):
+        return next((w for key, part in space.spaces.items() if (w := outside_space(part, observation[key]))), None)
+    if isinstance(space, spaces.Tuple):
         return next(
-            (w for part, x in zip(space.spaces, observation, strict=True) if (w := discrete_outside(part, x))), None
+            (w for part, x in zip(space.spaces, observation, strict=True) if (w := outside_space(part, x))), None
         )
+    if not isinstance(space, (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)):
+        return None
+    x = np.asarray(observation)
+    if not isinstance(space, spaces.Discrete) and _unit_free(x.shape) != _unit_free(space.shape):
+        return f"shape {x.shape} is not the space's {space.shape}: which of its numbers is which cannot be told"
+    if isinstance(space, spaces.Discrete):
+        low, high = space.start, space.start + space.n
+    elif isinstance(space, spaces.MultiDiscrete):
+        low, high, x = space.start, space.start + space.nvec, x.reshape(space.shape)
+    elif isinstance(space, spaces.MultiBinary):
+        low, high = 0, 2
     else:
         return None
     bad = (x < low) | (x >= high) | (x != np.floor(x))
     return f"{x[bad].flat[0].item()!r} is not a value of {space}" if bad.any() else None
+
+
+def _unit_free(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """A shape without its axes of length 1 (which change no number's place in C order)."""
+    return tuple(k for k in shape if k != 1)
 
 
 def check_finite(layout: EnvLayout, obs: np.ndarray, state: np.ndarray | None = None) -> None:
