@@ -156,6 +156,14 @@ class SpacesEnv(ParallelEnv):
         return obs, dict.fromkeys(obs, 0.0), dict.fromkeys(obs, False), dict.fromkeys(obs, done), {a: {} for a in obs}
 
 
+class MixedActionsEnv(SignalEnv):
+    """SignalEnv whose listener acts in a Box while the speaker's action is Discrete."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._act = {"speaker": spaces.Discrete(1), "listener": spaces.Box(-1, 1, (2,), np.float32)}
+
+
 class OddRewardEnv(SignalEnv):
     """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...; "raise": its step raises, as
     an env's own bug would; "interrupt": a KeyboardInterrupt comes during its step; "array": `np.array([1.0])`;
@@ -333,6 +341,17 @@ def test_spaces_learning_cannot_use_are_one_line(kwargs: dict[str, str], names: 
     with pytest.raises(ConfigError) as err:
         VecEnv(make, 1)
     assert "\n" not in str(err.value) and names in str(err.value), err.value
+
+
+def test_agents_whose_actions_mix_box_and_discrete_are_one_line_naming_both() -> None:
+    """The line named the env's class alone: which agent's space was the odd one, and what would do, were left out."""
+    make = env_factory(config(env=f"{__name__}:MixedActionsEnv"))
+    with pytest.raises(ConfigError) as err:
+        VecEnv(make, 1)
+    assert str(err.value) == (
+        "invalid action_space('listener')=Box(-1.0, 1.0, (2,), float32): is a Box while action_space('speaker') is "
+        "Discrete(1): learning needs every agent's actions Box, or every agent's Discrete, MultiDiscrete or MultiBinary"
+    )
 
 
 @pytest.mark.parametrize(("state", "size"), [("state_space", 4), ("none", 2 * 3), ("dict", 2 * 3)])

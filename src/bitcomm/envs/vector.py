@@ -140,8 +140,13 @@ class EnvLayout:
                     act_space,
                     "learning supports Discrete, MultiDiscrete, MultiBinary or Box actions",
                 )
-        if len(set(kinds)) != 1:
-            raise bad_value("env", type(env.inner).__name__, "agents mix Discrete and Box actions; use one kind")
+        if len(set(kinds)) != 1:  # name an agent of each kind: which of the env's agents is the odd one
+            box, other = (agents[kinds.index(kind)] for kind in (False, True))
+            raise bad_value(
+                f"action_space({box!r})", act_spaces[kinds.index(False)], f"is a Box while action_space({other!r}) is "
+                f"{act_spaces[kinds.index(True)]}: learning needs every agent's actions Box, or every agent's "
+                "Discrete, MultiDiscrete or MultiBinary",
+            )  # fmt: skip
         width = max(sizes)
         low, high = np.zeros((len(agents), width), np.float32), np.zeros((len(agents), width), np.float32)
         for i, (lo, hi) in enumerate(zip(lows, highs, strict=True)):
