@@ -164,6 +164,15 @@ class MixedActionsEnv(SignalEnv):
         self._act = {"speaker": spaces.Discrete(1), "listener": spaces.Box(-1, 1, (2,), np.float32)}
 
 
+class NobodyEnv(SignalEnv):
+    """SignalEnv whose reset lists no agent."""
+
+    def reset(self, seed: int | None = None, options: Any = None) -> tuple[dict, dict]:
+        super().reset(seed, options)
+        self.agents = []
+        return {}, {}
+
+
 class OddRewardEnv(SignalEnv):
     """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...; "raise": its step raises, as
     an env's own bug would; "interrupt": a KeyboardInterrupt comes during its step; "array": `np.array([1.0])`;
@@ -835,6 +844,8 @@ BAD_ENVS = [
     (["--env", "no_such_module_xyz:make"], "cannot be imported"),
     (["--env", f"{__name__}:SpacesEnv", "--env-kwargs", '{"act": "dict"}'], "action_space('a')"),
     (["--env", SPEC, "--messages", "onehot", "--bits", "30"], "invalid bits=30: one-hot messages over 2^30 words"),
+    # every episode ended at its first step with no one acting: a run that learned nothing and reported return 0
+    (["--env", f"{__name__}:NobodyEnv"], "invalid env.agents=[]: after reset(seed=0): no agent would act"),
 ]
 
 

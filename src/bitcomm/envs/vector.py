@@ -151,7 +151,7 @@ class EnvLayout:
         low, high = np.zeros((len(agents), width), np.float32), np.zeros((len(agents), width), np.float32)
         for i, (lo, hi) in enumerate(zip(lows, highs, strict=True)):
             low[i, : lo.size], high[i, : hi.size] = lo, hi
-        env.reset(seed=0)
+        reset_someone_plays(env, 0)
         state = inner_state(env)
         has_state = state is not None
         state_size = int(state.size) if state is not None else len(agents) * max(obs_sizes)
@@ -161,6 +161,18 @@ class EnvLayout:
             tuple(sizes), low, high, state_size, has_state, fixed, np.asarray(env.recipients, dtype=bool),
             tuple(obs_spaces), tuple(act_spaces),
         )  # fmt: skip
+
+
+def reset_someone_plays(env: Any, seed: int) -> dict[Any, Any]:
+    """The observations of `env.reset(seed=seed)`, or one line if it lists no agent: stepped with no one to act, the
+    episode ended at once, and a run of such episodes learned nothing and reported a return of 0."""
+    obs, _ = env.reset(seed=seed)
+    if not env.agents:
+        raise bad_value(
+            "env.agents", [], f"after reset(seed={seed}): no agent would act in the episode; a ParallelEnv's reset "
+            "lists the agents that play first",
+        )  # fmt: skip
+    return obs
 
 
 def inner_state(env: Any) -> np.ndarray | None:
@@ -271,8 +283,7 @@ class VecEnv:
     def reset(self, seeds: Sequence[int] | np.ndarray) -> VecObservation:
         out = self._empty()
         for b, env in enumerate(self.envs):
-            obs, _ = env.reset(seed=int(seeds[b]))
-            self._write(out, b, obs)
+            self._write(out, b, reset_someone_plays(env, int(seeds[b])))
         check_finite(self.layout, out.obs, out.state if self.layout.has_state else None)
         self.running[:] = True
         return out
