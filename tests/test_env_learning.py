@@ -379,6 +379,12 @@ def test_json_agent_names_reach_an_env_whose_agents_are_not_strings() -> None:
     assert env.recipients.tolist() == [[False, True], [False, False]] and env.fixed_actions == {1: 2}
 
 
+def test_a_topology_naming_an_agent_by_its_int_says_to_write_it_as_json_does() -> None:
+    """The line said "agent-name pairs" to a user who had named agent 0 by its name, 0."""
+    with pytest.raises(ConfigError, match=re.escape('each name a string as JSON writes it ("0" for an agent 0)')):
+        EnvChannelConfig(topology=[(0, 1)])  # type: ignore[list-item]
+
+
 def test_a_multidiscrete_action_is_numbered_by_its_combinations() -> None:
     space = spaces.MultiDiscrete([[2, 3], [1, 2]], start=[[1, -1], [0, 5]])
     actions = [inner_action(space, np.int64(i)) for i in range(12)]
