@@ -173,6 +173,18 @@ class NobodyEnv(SignalEnv):
         return {}, {}
 
 
+class NamedInResetEnv(SignalEnv):
+    """SignalEnv that names its agents only in reset."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        del self.possible_agents
+
+    def reset(self, seed: int | None = None, options: Any = None) -> tuple[dict, dict]:
+        self.possible_agents = ["speaker", "listener"]
+        return super().reset(seed, options)
+
+
 class OddRewardEnv(SignalEnv):
     """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...; "raise": its step raises, as
     an env's own bug would; "interrupt": a KeyboardInterrupt comes during its step; "array": `np.array([1.0])`;
@@ -852,6 +864,8 @@ BAD_ENVS = [
     (["--env", SPEC, "--messages", "onehot", "--bits", "30"], "invalid bits=30: one-hot messages over 2^30 words"),
     # every episode ended at its first step with no one acting: a run that learned nothing and reported return 0
     (["--env", f"{__name__}:NobodyEnv"], "invalid env.agents=[]: after reset(seed=0): no agent would act"),
+    # possible_agents set only in reset: an AttributeError from the maker, before the wrapper could say it
+    (["--env", f"{__name__}:NamedInResetEnv"], "invalid possible_agents=None: NamedInResetEnv has none before reset"),
 ]
 
 

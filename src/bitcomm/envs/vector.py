@@ -35,7 +35,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from bitcomm.envs.channel_wrapper import BitChannel
+from bitcomm.envs.channel_wrapper import BitChannel, possible_agents_of
 from bitcomm.envs.factory import make_parallel_env
 from bitcomm.errors import bad_value, one_line
 
@@ -231,7 +231,7 @@ class WrappedEnvMaker:
     def __call__(self) -> ParallelEnv:
         inner = make_parallel_env(self.env, self.env_kwargs)
         # JSON (--topology, --fixed-actions, config.json) writes every agent name as a string: "0" is agent 0
-        named = {str(a): a for a in inner.possible_agents}
+        named = {str(a): a for a in possible_agents_of(inner)}
         topology = self.topology
         if not isinstance(topology, str):
             topology = [(named.get(s, s), named.get(r, r)) for s, r in topology]
