@@ -747,13 +747,16 @@ def test_a_discrete_observation_outside_its_space_is_one_line(obs: str, value: A
     [
         ("image", np.zeros((3, 2, 2), np.uint8), "(3, 2, 2) is not the space's (2, 2, 3)"),  # a transposed image
         ("box 2x2", np.zeros(4), "(4,) is not the space's (2, 2)"),
+        ("dict", {"cell": np.array([0, 1]), "near": np.zeros(2)}, "(2,) is not the space's ()"),  # Discrete's one-hot
+        ("discrete from 1", np.array([2]), None),
         ("dict", {"cell": 0, "near": np.zeros((2, 1))}, None),  # an axis of length 1 moves no number
         ("multibinary", np.zeros((1, 2), np.int8), None),
     ],
 )
 def test_an_observation_of_the_right_size_in_another_shape_is_one_line(obs: str, value: Any, shape: str | None) -> None:
     """Its numbers were read in the space's order without a word: a (3, 2, 2) image for a (2, 2, 3) space reached
-    the network with its pixels scrambled. Axes of length 1 change no number's place and pass."""
+    the network with its pixels scrambled, a Discrete(2)'s value given as its one-hot [0, 1] set both entries of
+    the one-hot gymnasium made. Axes of length 1 change no number's place and pass."""
     layout = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"obs": obs})), 1).layout
     if shape is None:
         assert flat_row(layout, 0, value).size == layout.obs_sizes[0]

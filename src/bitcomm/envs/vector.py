@@ -368,8 +368,9 @@ def outside_space(space: spaces.Space, observation: Any) -> str | None:
     """What in an observation gymnasium flattened it would read as another value, or None: its one-hot of a
     Discrete indexes from the end for a value below `start` (-1 of Discrete(5) reads as 4), a MultiBinary entry
     passes as it is (a 2 is not a bit), and an array of the right size in another shape is read in the space's
-    order (a (5, 4, 3) image for a (4, 5, 3) space: its pixels scrambled), so the network would read other values
-    without a word. Axes of length 1 are left out of the comparison: they change no number's place."""
+    order (a (5, 4, 3) image for a (4, 5, 3) space: its pixels scrambled; a Discrete(5)'s value given as its one-hot
+    [0, 0, 1, 0, 0] set the one-hot's entries 0 and 1), so the network would read other values without a word. Axes
+    of length 1 are left out of the comparison: they change no number's place."""
     if isinstance(space, spaces.Dict):
         return next((w for key, part in space.spaces.items() if (w := outside_space(part, observation[key]))), None)
     if isinstance(space, spaces.Tuple):
@@ -379,7 +380,7 @@ def outside_space(space: spaces.Space, observation: Any) -> str | None:
     if not isinstance(space, (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)):
         return None
     x = np.asarray(observation)
-    if not isinstance(space, spaces.Discrete) and _unit_free(x.shape) != _unit_free(space.shape):
+    if _unit_free(x.shape) != _unit_free(space.shape or ()):  # a Discrete's is (): one number, not its one-hot
         return f"shape {x.shape} is not the space's {space.shape}: which of its numbers is which cannot be told"
     if isinstance(space, spaces.Discrete):
         low, high = space.start, space.start + space.n
