@@ -485,6 +485,25 @@ def test_fixed_actions_silence_the_speakers_own_comm_action() -> None:
         assert obs["listener_0"]["observation"][-3:].tolist() == [1.0, 0.0, 0.0]
 
 
+class NamedInReset(Toy):
+    """Toy that sets `possible_agents` only in `reset`, against PettingZoo's rule."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        del self.possible_agents
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        self.possible_agents = ["a", "b", "c"]
+        return super().reset(seed, options)
+
+
+class NoSpaceForC(Toy):
+    """Toy whose observation spaces are a dict that lacks agent c."""
+
+    def observation_space(self, agent: str) -> spaces.Space:
+        return {"a": self._obs, "b": self._obs}[agent]
+
+
 BAD: dict[str, tuple[Callable[[], Any], str]] = {
     "bits 0": (lambda: BitChannel(Toy(), bits=0), "bits=0"),
     "bits 31": (lambda: BitChannel(Toy(), bits=31), "bits=31"),
@@ -494,6 +513,14 @@ BAD: dict[str, tuple[Callable[[], Any], str]] = {
     "not parallel": (lambda: BitChannel(goal_exchange_v0.env()), "env="),
     "no agents": (lambda: BitChannel(Toy(agents=[])), "possible_agents=[]"),
     "an agent twice": (lambda: BitChannel(Toy(agents=["a", "b", "a"])), "possible_agents=['a', 'b', 'a']"),
+    # an env that names its agents only in reset stopped in an AttributeError
+    "agents named only in reset": (lambda: BitChannel(NamedInReset()), "possible_agents=None: NamedInReset has none"),
+    "agents not a list": (lambda: BitChannel(Toy(agents=3)), "possible_agents=3"),  # type: ignore[arg-type]
+    # the env's own lookup raised from inside the wrapper
+    "space lookup raises": (
+        lambda: BitChannel(NoSpaceForC()),
+        "invalid env='NoSpaceForC': its observation_space('c') raised KeyError: 'c'",
+    ),
     "not a space": (lambda: BitChannel(Toy(action_space=[0, 1, 2])), "action_space('a')=[0, 1, 2]"),  # type: ignore[arg-type]
     "topology word": (lambda: BitChannel(Toy(), topology="star"), "topology='star'"),
     "unknown agent": (lambda: BitChannel(Toy(), topology=[("a", "z")]), "'z' is not an agent"),

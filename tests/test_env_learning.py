@@ -156,6 +156,35 @@ class SpacesEnv(ParallelEnv):
         return obs, dict.fromkeys(obs, 0.0), dict.fromkeys(obs, False), dict.fromkeys(obs, done), {a: {} for a in obs}
 
 
+class MixedActionsEnv(SignalEnv):
+    """SignalEnv whose listener acts in a Box while the speaker's action is Discrete."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._act = {"speaker": spaces.Discrete(1), "listener": spaces.Box(-1, 1, (2,), np.float32)}
+
+
+class NobodyEnv(SignalEnv):
+    """SignalEnv whose reset lists no agent."""
+
+    def reset(self, seed: int | None = None, options: Any = None) -> tuple[dict, dict]:
+        super().reset(seed, options)
+        self.agents = []
+        return {}, {}
+
+
+class NamedInResetEnv(SignalEnv):
+    """SignalEnv that names its agents only in reset."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        del self.possible_agents
+
+    def reset(self, seed: int | None = None, options: Any = None) -> tuple[dict, dict]:
+        self.possible_agents = ["speaker", "listener"]
+        return super().reset(seed, options)
+
+
 class OddRewardEnv(SignalEnv):
     """SignalEnv whose rewards become `reward` (as given: NaN, inf, None, a string...; "raise": its step raises, as
     an env's own bug would; "interrupt": a KeyboardInterrupt comes during its step; "array": `np.array([1.0])`;
@@ -335,6 +364,17 @@ def test_spaces_learning_cannot_use_are_one_line(kwargs: dict[str, str], names: 
     assert "\n" not in str(err.value) and names in str(err.value), err.value
 
 
+def test_agents_whose_actions_mix_box_and_discrete_are_one_line_naming_both() -> None:
+    """The line named the env's class alone: which agent's space was the odd one, and what would do, were left out."""
+    make = env_factory(config(env=f"{__name__}:MixedActionsEnv"))
+    with pytest.raises(ConfigError) as err:
+        VecEnv(make, 1)
+    assert str(err.value) == (
+        "invalid action_space('listener')=Box(-1.0, 1.0, (2,), float32): is a Box while action_space('speaker') is "
+        "Discrete(1): learning needs every agent's actions Box, or every agent's Discrete, MultiDiscrete or MultiBinary"
+    )
+
+
 @pytest.mark.parametrize(("state", "size"), [("state_space", 4), ("none", 2 * 3), ("dict", 2 * 3)])
 def test_the_critic_reads_the_env_state_where_it_has_a_state_space(state: str, size: int) -> None:
     """Else the concatenated padded observations (two agents, three numbers each)."""
@@ -349,6 +389,12 @@ def test_json_agent_names_reach_an_env_whose_agents_are_not_strings() -> None:
     channel = {"bits": 2, "topology": [["0", "1"]], "fixed_actions": {"1": 2}}
     env = env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"agents": [0, 1]}, channel=channel))()
     assert env.recipients.tolist() == [[False, True], [False, False]] and env.fixed_actions == {1: 2}
+
+
+def test_a_topology_naming_an_agent_by_its_int_says_to_write_it_as_json_does() -> None:
+    """The line said "agent-name pairs" to a user who had named agent 0 by its name, 0."""
+    with pytest.raises(ConfigError, match=re.escape('each name a string as JSON writes it ("0" for an agent 0)')):
+        EnvChannelConfig(topology=[(0, 1)])  # type: ignore[list-item]
 
 
 def test_a_multidiscrete_action_is_numbered_by_its_combinations() -> None:
@@ -696,6 +742,29 @@ def test_a_discrete_observation_outside_its_space_is_one_line(obs: str, value: A
     assert flat_row(layout, 0, layout.obs_spaces[0].sample()).size == layout.obs_sizes[0]
 
 
+@pytest.mark.parametrize(
+    ("obs", "value", "shape"),
+    [
+        ("image", np.zeros((3, 2, 2), np.uint8), "(3, 2, 2) is not the space's (2, 2, 3)"),  # a transposed image
+        ("box 2x2", np.zeros(4), "(4,) is not the space's (2, 2)"),
+        ("dict", {"cell": np.array([0, 1]), "near": np.zeros(2)}, "(2,) is not the space's ()"),  # Discrete's one-hot
+        ("discrete from 1", np.array([2]), None),
+        ("dict", {"cell": 0, "near": np.zeros((2, 1))}, None),  # an axis of length 1 moves no number
+        ("multibinary", np.zeros((1, 2), np.int8), None),
+    ],
+)
+def test_an_observation_of_the_right_size_in_another_shape_is_one_line(obs: str, value: Any, shape: str | None) -> None:
+    """Its numbers were read in the space's order without a word: a (3, 2, 2) image for a (2, 2, 3) space reached
+    the network with its pixels scrambled, a Discrete(2)'s value given as its one-hot [0, 1] set both entries of
+    the one-hot gymnasium made. Axes of length 1 change no number's place and pass."""
+    layout = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"obs": obs})), 1).layout
+    if shape is None:
+        assert flat_row(layout, 0, value).size == layout.obs_sizes[0]
+        return
+    with pytest.raises(ConfigError, match=re.escape(f"does not fit {layout.obs_spaces[0]} (shape {shape}: which")):
+        flat_row(layout, 0, value)
+
+
 def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:
     """The first copy gives NaN rewards from its third reset (spaces, batch 0, batch 1): batch 0 is learned and
     saved, as when a worker dies, so that the run loses nothing when its env is mended."""
@@ -796,6 +865,10 @@ BAD_ENVS = [
     (["--env", "no_such_module_xyz:make"], "cannot be imported"),
     (["--env", f"{__name__}:SpacesEnv", "--env-kwargs", '{"act": "dict"}'], "action_space('a')"),
     (["--env", SPEC, "--messages", "onehot", "--bits", "30"], "invalid bits=30: one-hot messages over 2^30 words"),
+    # every episode ended at its first step with no one acting: a run that learned nothing and reported return 0
+    (["--env", f"{__name__}:NobodyEnv"], "invalid env.agents=[]: after reset(seed=0): no agent would act"),
+    # possible_agents set only in reset: an AttributeError from the maker, before the wrapper could say it
+    (["--env", f"{__name__}:NamedInResetEnv"], "invalid possible_agents=None: NamedInResetEnv has none before reset"),
 ]
 
 

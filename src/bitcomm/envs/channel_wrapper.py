@@ -29,7 +29,7 @@ from pettingzoo import ParallelEnv
 from bitcomm.channel.core import Channel
 from bitcomm.channel.topology import Topology, recipients_of
 from bitcomm.config import ChannelConfig, Integer, slot_table
-from bitcomm.errors import bad_value
+from bitcomm.errors import bad_value, one_line
 
 AgentID = str
 StepReturn = tuple[
@@ -104,9 +104,7 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         _check_seed(seed)
         _check_reset_takes_seed(env)
         self.inner = env
-        self.possible_agents: list[AgentID] = list(env.possible_agents)
-        if not self.possible_agents or len(set(self.possible_agents)) != len(self.possible_agents):
-            raise bad_value("possible_agents", self.possible_agents, "the env must name one or more distinct agents")
+        self.possible_agents: list[AgentID] = possible_agents_of(env)
         self.agents: list[AgentID] = []
         n = len(self.possible_agents)
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
@@ -241,6 +239,24 @@ class BitChannel(ParallelEnv[AgentID, dict[str, np.ndarray], dict[str, Any]]):
         self.inner.close()
 
 
+def possible_agents_of(env: ParallelEnv) -> list[AgentID]:
+    """The env's `possible_agents` as a list, or one line unless it names one or more distinct agents. PettingZoo
+    sets it in the env's `__init__`; one that sets it only in `reset` (or never) stopped in an AttributeError."""
+    agents = getattr(env, "possible_agents", None)
+    if agents is None:
+        raise bad_value(
+            "possible_agents", None, f"{type(env).__name__} has none before reset; a PettingZoo ParallelEnv names "
+            "every agent that may play in possible_agents when it is made (in __init__)",
+        )  # fmt: skip
+    try:
+        listed = list(agents)
+    except TypeError:
+        listed = []
+    if not listed or len(set(listed)) != len(listed):
+        raise bad_value("possible_agents", agents, "the env must name one or more distinct agents")
+    return listed
+
+
 def _check_reset_takes_seed(env: ParallelEnv) -> None:
     """One line unless the env's `reset` takes `seed=` (a ParallelEnv's is `reset(seed=None, options=None)`): every
     episode is seeded through it, and one without it failed at the first reset with a TypeError from inside the
@@ -306,7 +322,13 @@ def _live_after_step(
 
 def _inner_space(env: ParallelEnv, agent: AgentID, kind: str) -> spaces.Space:
     """The inner env's observation or action space of `agent`, or one error line if it is not a gymnasium space."""
-    space = getattr(env, f"{kind}_space")(agent)
+    try:
+        space = getattr(env, f"{kind}_space")(agent)
+    except Exception as err:  # the env's own lookup (a dict missing the agent, say): one line naming the call
+        raise bad_value(
+            "env", type(env).__name__, f"its {kind}_space({agent!r}) raised {one_line(err)}; every agent in "
+            "possible_agents needs one",
+        ) from None  # fmt: skip
     if not isinstance(space, spaces.Space):
         raise bad_value(f"{kind}_space({agent!r})", space, "must be a gymnasium.spaces.Space")
     return space

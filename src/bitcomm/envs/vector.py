@@ -35,7 +35,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from bitcomm.envs.channel_wrapper import BitChannel
+from bitcomm.envs.channel_wrapper import BitChannel, possible_agents_of
 from bitcomm.envs.factory import make_parallel_env
 from bitcomm.errors import bad_value, one_line
 
@@ -140,13 +140,18 @@ class EnvLayout:
                     act_space,
                     "learning supports Discrete, MultiDiscrete, MultiBinary or Box actions",
                 )
-        if len(set(kinds)) != 1:
-            raise bad_value("env", type(env.inner).__name__, "agents mix Discrete and Box actions; use one kind")
+        if len(set(kinds)) != 1:  # name an agent of each kind: which of the env's agents is the odd one
+            box, other = (agents[kinds.index(kind)] for kind in (False, True))
+            raise bad_value(
+                f"action_space({box!r})", act_spaces[kinds.index(False)], f"is a Box while action_space({other!r}) is "
+                f"{act_spaces[kinds.index(True)]}: learning needs every agent's actions Box, or every agent's "
+                "Discrete, MultiDiscrete or MultiBinary",
+            )  # fmt: skip
         width = max(sizes)
         low, high = np.zeros((len(agents), width), np.float32), np.zeros((len(agents), width), np.float32)
         for i, (lo, hi) in enumerate(zip(lows, highs, strict=True)):
             low[i, : lo.size], high[i, : hi.size] = lo, hi
-        env.reset(seed=0)
+        reset_someone_plays(env, 0)
         state = inner_state(env)
         has_state = state is not None
         state_size = int(state.size) if state is not None else len(agents) * max(obs_sizes)
@@ -156,6 +161,18 @@ class EnvLayout:
             tuple(sizes), low, high, state_size, has_state, fixed, np.asarray(env.recipients, dtype=bool),
             tuple(obs_spaces), tuple(act_spaces),
         )  # fmt: skip
+
+
+def reset_someone_plays(env: Any, seed: int) -> dict[Any, Any]:
+    """The observations of `env.reset(seed=seed)`, or one line if it lists no agent: stepped with no one to act, the
+    episode ended at once, and a run of such episodes learned nothing and reported a return of 0."""
+    obs, _ = env.reset(seed=seed)
+    if not env.agents:
+        raise bad_value(
+            "env.agents", [], f"after reset(seed={seed}): no agent would act in the episode; a ParallelEnv's reset "
+            "lists the agents that play first",
+        )  # fmt: skip
+    return obs
 
 
 def inner_state(env: Any) -> np.ndarray | None:
@@ -214,7 +231,7 @@ class WrappedEnvMaker:
     def __call__(self) -> ParallelEnv:
         inner = make_parallel_env(self.env, self.env_kwargs)
         # JSON (--topology, --fixed-actions, config.json) writes every agent name as a string: "0" is agent 0
-        named = {str(a): a for a in inner.possible_agents}
+        named = {str(a): a for a in possible_agents_of(inner)}
         topology = self.topology
         if not isinstance(topology, str):
             topology = [(named.get(s, s), named.get(r, r)) for s, r in topology]
@@ -266,8 +283,7 @@ class VecEnv:
     def reset(self, seeds: Sequence[int] | np.ndarray) -> VecObservation:
         out = self._empty()
         for b, env in enumerate(self.envs):
-            obs, _ = env.reset(seed=int(seeds[b]))
-            self._write(out, b, obs)
+            self._write(out, b, reset_someone_plays(env, int(seeds[b])))
         check_finite(self.layout, out.obs, out.state if self.layout.has_state else None)
         self.running[:] = True
         return out
@@ -330,44 +346,57 @@ def agent_rows(
 
 def flat_row(layout: EnvLayout, i: int, observation: Any) -> np.ndarray:
     """Agent i's inner observation flattened (`flat_observation`), or one line naming it if it does not fit the
-    agent's space: a value gymnasium cannot flatten, or one of another size (which would be cut, broadcast or
-    refused by numpy without a word about the env)."""
+    agent's space: a value gymnasium cannot flatten, one of another size (which would be cut, broadcast or
+    refused by numpy without a word about the env), or one whose values would be read as others (`outside_space`)."""
     space, where = layout.obs_spaces[i], f"observations[{layout.agents[i]!r}]['observation']"
     try:
         flat = flat_observation(space, observation)
-        outside = discrete_outside(space, observation)
+        outside = outside_space(space, observation)
     except (TypeError, ValueError, IndexError, KeyError, AssertionError) as err:
         raise bad_value(where, type(observation).__name__, f"does not fit {space} ({one_line(err)})") from None
-    if outside is not None:
-        raise bad_value(where, type(observation).__name__, f"does not fit {space} ({outside})")
     if flat.size != layout.obs_sizes[i]:
         raise bad_value(
             f"{where} shape", np.shape(observation),
             f"must fit {space} ({layout.obs_sizes[i]} numbers once flattened, not {flat.size})",
         )  # fmt: skip
+    if outside is not None:
+        raise bad_value(where, type(observation).__name__, f"does not fit {space} ({outside})")
     return flat
 
 
-def discrete_outside(space: spaces.Space, observation: Any) -> str | None:
-    """What in an observation gymnasium flattened lies outside its discrete parts, or None: its one-hot of a Discrete
-    indexes from the end for a value below `start` (-1 of Discrete(5) reads as 4) and a MultiBinary entry passes as
-    it is (a 2 is not a bit), so the network would read another value without a word."""
-    if isinstance(space, spaces.Discrete):
-        low, high, x = space.start, space.start + space.n, np.asarray(observation)
-    elif isinstance(space, spaces.MultiDiscrete):
-        low, high, x = space.start, space.start + space.nvec, np.asarray(observation)
-    elif isinstance(space, spaces.MultiBinary):
-        low, high, x = 0, 2, np.asarray(observation)
-    elif isinstance(space, spaces.Dict):
-        return next((w for key, part in space.spaces.items() if (w := discrete_outside(part, observation[key]))), None)
-    elif isinstance(space, spaces.Tuple):
+def outside_space(space: spaces.Space, observation: Any) -> str | None:
+    """What in an observation gymnasium flattened it would read as another value, or None: its one-hot of a
+    Discrete indexes from the end for a value below `start` (-1 of Discrete(5) reads as 4), a MultiBinary entry
+    passes as it is (a 2 is not a bit), and an array of the right size in another shape is read in the space's
+    order (a (5, 4, 3) image for a (4, 5, 3) space: its pixels scrambled; a Discrete(5)'s value given as its one-hot
+    [0, 0, 1, 0, 0] set the one-hot's entries 0 and 1), so the network would read other values without a word. Axes
+    of length 1 are left out of the comparison: they change no number's place."""
+    if isinstance(space, spaces.Dict):
+        return next((w for key, part in space.spaces.items() if (w := outside_space(part, observation[key]))), None)
+    if isinstance(space, spaces.Tuple):
         return next(
-            (w for part, x in zip(space.spaces, observation, strict=True) if (w := discrete_outside(part, x))), None
+            (w for part, x in zip(space.spaces, observation, strict=True) if (w := outside_space(part, x))), None
         )
+    if not isinstance(space, (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)):
+        return None
+    x = np.asarray(observation)
+    if _unit_free(x.shape) != _unit_free(space.shape or ()):  # a Discrete's is (): one number, not its one-hot
+        return f"shape {x.shape} is not the space's {space.shape}: which of its numbers is which cannot be told"
+    if isinstance(space, spaces.Discrete):
+        low, high = space.start, space.start + space.n
+    elif isinstance(space, spaces.MultiDiscrete):
+        low, high, x = space.start, space.start + space.nvec, x.reshape(space.shape)
+    elif isinstance(space, spaces.MultiBinary):
+        low, high = 0, 2
     else:
         return None
     bad = (x < low) | (x >= high) | (x != np.floor(x))
     return f"{x[bad].flat[0].item()!r} is not a value of {space}" if bad.any() else None
+
+
+def _unit_free(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """A shape without its axes of length 1 (which change no number's place in C order)."""
+    return tuple(k for k in shape if k != 1)
 
 
 def check_finite(layout: EnvLayout, obs: np.ndarray, state: np.ndarray | None = None) -> None:

@@ -43,7 +43,10 @@ class EnvChannelConfig:
             isinstance(edges, (list, tuple))
             and all(isinstance(e, (list, tuple)) and len(e) == 2 and all(isinstance(a, str) for a in e) for e in edges)
         ):
-            raise bad_value("topology", edges, "all, ring, or a list of [sender, receiver] agent-name pairs")
+            raise bad_value(
+                "topology", edges, "all, ring, or a list of [sender, receiver] agent-name pairs, each name a string as "
+                "JSON writes it (\"0\" for an agent 0)",
+            )  # fmt: skip
         if self.fixed_actions is not None and not isinstance(self.fixed_actions, dict):
             raise bad_value("fixed_actions", self.fixed_actions, "a JSON object: agent name -> its fixed action")
 
