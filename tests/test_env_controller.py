@@ -224,6 +224,7 @@ def test_loading_a_run_builds_its_env_only_if_you_vouch_for_it(
         EnvController.load(counted_run)
     assert "\n" not in str(err.value) and f"invalid env='{MODULE}:CountedEnv'" in str(err.value)
     assert "BITCOMM_TRUST_ENVS" in str(err.value) and not CountedEnv.made  # refused before anything was built
+    assert f"typed_env='{MODULE}:CountedEnv'" in str(err.value)  # what a Python caller types: not --env
     with pytest.raises(ConfigError):
         EnvController.load(counted_run, typed_env=f"{MODULE}:SignalEnv")  # another spec vouches for nothing
     monkeypatch.setenv("BITCOMM_TRUST_ENVS", MODULE)

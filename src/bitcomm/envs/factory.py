@@ -70,7 +70,10 @@ def check_recorded_env(spec: str, source: Path | str, typed: str | None = None) 
 
 
 def _how_to_trust(spec: str, package: str) -> str:
-    return f"to trust it, type --env {spec} (train --resume) or set {TRUST_VARIABLE}={package}"
+    return (
+        f"to trust it, type --env {spec} (train --resume; from Python, typed_env={spec!r}) or set "
+        f"{TRUST_VARIABLE}={package}"
+    )
 
 
 def resolve_factory(spec: str) -> Callable[..., Any]:
