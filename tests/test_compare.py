@@ -505,6 +505,19 @@ def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
 
 
+def test_a_runs_stop_reaches_the_study_as_it_was_raised(tmp_path: Path) -> None:
+    """A study's run sends its `Stopped` back to the study through a pipe. Rebuilt from its message (the signal's
+    name) it failed to unpickle there, which broke the pool: the study ended every other run at once, saved or not,
+    and the resource tracker warned of leaked semaphores."""
+    import pickle
+
+    from bitcomm.stop_signals import Stopped
+
+    back = pickle.loads(pickle.dumps(Stopped(signal.SIGTERM, tmp_path / "ckpt.safetensors", 48)))
+    assert isinstance(back, Stopped) and back.exit_code == 143 and str(back) == "SIGTERM"
+    assert back.checkpoint == tmp_path / "ckpt.safetensors" and back.episodes == 48
+
+
 def test_timeouts_second_copy_is_dropped_however_soon_after_the_first_it_comes(monkeypatch: pytest.MonkeyPatch) -> None:
     """`timeout` signals the study, then its process group. The guard that drops the group's copy was put in place
     only once the first signal's `Stopped` had reached the study's clean-up: now and then the copy came first, and the
@@ -551,6 +564,7 @@ def test_timeout_of_a_study_saves_the_batch_each_run_is_on(tmp_path: Path, signu
     played = int((folder / "metrics.csv").read_text().splitlines()[-1].split(",")[1])
     saved = json.loads((folder / "checkpoints" / "latest.json").read_text())["episodes"]
     assert "stopped after" in err and saved == played
+    assert "Traceback" not in err and "leaked" not in err, err  # the run's `Stopped` came back whole, the pool intact
 
 
 def test_a_quick_studys_equal_wall_clock_is_not_read_as_0_seconds() -> None:
