@@ -567,6 +567,50 @@ def test_timeout_of_a_study_saves_the_batch_each_run_is_on(tmp_path: Path, signu
     assert "Traceback" not in err and "leaked" not in err, err  # the run's `Stopped` came back whole, the pool intact
 
 
+CTRL_C_AT_START = """
+import os, signal, sys
+from concurrent.futures import ProcessPoolExecutor
+
+submit = ProcessPoolExecutor.submit
+
+
+def submit_then_ctrl_c(self, *args, **kwargs):
+    future = submit(self, *args, **kwargs)  # which starts the worker for it
+    os.killpg(0, signal.SIGINT)  # Ctrl-C while that worker imports bitcomm
+    return future
+
+
+ProcessPoolExecutor.submit = submit_then_ctrl_c
+if __name__ == "__main__":
+    from bitcomm.cli import main
+
+    sys.exit(main(sys.argv[1:]))
+"""
+"""`bitcomm compare` with a Ctrl-C to its process group as its worker starts."""
+
+
+def test_ctrl_c_as_a_studys_workers_start_stops_it_quietly_and_at_once(tmp_path: Path) -> None:
+    """A Ctrl-C while a study's worker started printed the worker's traceback (KeyboardInterrupt in an import), and,
+    once the worker ignored Ctrl-C but before it took its run, the study's own request to stop was lost: the run
+    trained on until the study ended it, unsaved, a minute (`STOP_GRACE_S`) later. It now starts no run."""
+    script = tmp_path / "ctrl_c_at_start.py"
+    script.write_text(CTRL_C_AT_START)
+    argv = [*TINY, "--episodes", "100000", "--seeds", "1", "--techniques", "improved-bitwise"]
+    proc = subprocess.Popen(
+        [sys.executable, str(script), "compare", *argv, "--jobs", "1", "--out", str(tmp_path / "study")],
+        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, even under CI
+    )  # fmt: skip
+    try:
+        _, err = proc.communicate(timeout=45)  # before the study would end the run at once
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130 and "Traceback" not in err and "leaked" not in err, err
+    assert err.strip().splitlines()[-1] == "bitcomm compare: interrupted"
+    assert not (tmp_path / "study" / "runs" / "improved-bitwise" / "seed0" / "checkpoints").exists()
+
+
 def test_a_quick_studys_equal_wall_clock_is_not_read_as_0_seconds() -> None:
     """The table's last column is each run's rolling length at the quickest run's training time; a study of seconds
     (a smoke test, a tiny grid) headed it "after 0 s"."""
