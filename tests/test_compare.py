@@ -583,6 +583,9 @@ def submit_then_ctrl_c(self, *args, **kwargs):
 ProcessPoolExecutor.submit = submit_then_ctrl_c
 if __name__ == "__main__":
     from bitcomm.cli import main
+    from bitcomm.studies import compare
+
+    compare.STOP_GRACE_S = 600.0  # a run that did not stop is waited for far longer than the test waits
 
     sys.exit(main(sys.argv[1:]))
 """
@@ -592,7 +595,7 @@ if __name__ == "__main__":
 def test_ctrl_c_as_a_studys_workers_start_stops_it_quietly_and_at_once(tmp_path: Path) -> None:
     """A Ctrl-C while a study's worker started printed the worker's traceback (KeyboardInterrupt in an import), and,
     once the worker ignored Ctrl-C but before it took its run, the study's own request to stop was lost: the run
-    trained on until the study ended it, unsaved, a minute (`STOP_GRACE_S`) later. It now starts no run."""
+    trained on until the study ended it, unsaved, `STOP_GRACE_S` (a minute) later. It now starts no run."""
     script = tmp_path / "ctrl_c_at_start.py"
     script.write_text(CTRL_C_AT_START)
     argv = [*TINY, "--episodes", "100000", "--seeds", "1", "--techniques", "improved-bitwise"]
@@ -602,7 +605,7 @@ def test_ctrl_c_as_a_studys_workers_start_stops_it_quietly_and_at_once(tmp_path:
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, even under CI
     )  # fmt: skip
     try:
-        _, err = proc.communicate(timeout=45)  # before the study would end the run at once
+        _, err = proc.communicate(timeout=120)  # long before the study would end the run at once
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

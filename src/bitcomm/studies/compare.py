@@ -524,13 +524,14 @@ def execute_all(
             raise
 
 
-def stop_runs(processes: list[Any], stopping: Any = None, grace_s: float = STOP_GRACE_S) -> None:
+def stop_runs(processes: list[Any], stopping: Any = None, grace_s: float | None = None) -> None:
     """Ask each worker to stop its run after the batch it is on and save it (SIGINT, as Ctrl-C would: the workers are
     out of the terminal's process group, `_init_worker`), and wait up to `grace_s` for them to end; then, or on a
     second interrupt (`bitcomm.stop_signals.repeats_count_once`), end them at once. Ended at once, a run stopped
     before its first checkpoint (every `checkpoint_seconds`) would start again from nothing. `stopping`, the workers'
-    shared flag, is raised first: a worker that ignored the signal (it was starting, or between runs) starts no run."""
-    deadline = time.monotonic() + grace_s
+    shared flag, is raised first: a worker that ignored the signal (it was starting, or between runs) starts no run.
+    `grace_s` defaults to `STOP_GRACE_S`."""
+    deadline = time.monotonic() + (STOP_GRACE_S if grace_s is None else grace_s)
     if stopping is not None:
         stopping.value = 1
     try:
