@@ -505,6 +505,19 @@ def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
 
 
+def test_a_runs_stop_reaches_the_study_as_it_was_raised(tmp_path: Path) -> None:
+    """A study's run sends its `Stopped` back to the study through a pipe. Rebuilt from its message (the signal's
+    name) it failed to unpickle there, which broke the pool: the study ended every other run at once, saved or not,
+    and the resource tracker warned of leaked semaphores."""
+    import pickle
+
+    from bitcomm.stop_signals import Stopped
+
+    back = pickle.loads(pickle.dumps(Stopped(signal.SIGTERM, tmp_path / "ckpt.safetensors", 48)))
+    assert isinstance(back, Stopped) and back.exit_code == 143 and str(back) == "SIGTERM"
+    assert back.checkpoint == tmp_path / "ckpt.safetensors" and back.episodes == 48
+
+
 def test_timeouts_second_copy_is_dropped_however_soon_after_the_first_it_comes(monkeypatch: pytest.MonkeyPatch) -> None:
     """`timeout` signals the study, then its process group. The guard that drops the group's copy was put in place
     only once the first signal's `Stopped` had reached the study's clean-up: now and then the copy came first, and the
@@ -551,6 +564,54 @@ def test_timeout_of_a_study_saves_the_batch_each_run_is_on(tmp_path: Path, signu
     played = int((folder / "metrics.csv").read_text().splitlines()[-1].split(",")[1])
     saved = json.loads((folder / "checkpoints" / "latest.json").read_text())["episodes"]
     assert "stopped after" in err and saved == played
+    assert "Traceback" not in err and "leaked" not in err, err  # the run's `Stopped` came back whole, the pool intact
+
+
+CTRL_C_AT_START = """
+import os, signal, sys
+from concurrent.futures import ProcessPoolExecutor
+
+submit = ProcessPoolExecutor.submit
+
+
+def submit_then_ctrl_c(self, *args, **kwargs):
+    future = submit(self, *args, **kwargs)  # which starts the worker for it
+    os.killpg(0, signal.SIGINT)  # Ctrl-C while that worker imports bitcomm
+    return future
+
+
+ProcessPoolExecutor.submit = submit_then_ctrl_c
+if __name__ == "__main__":
+    from bitcomm.cli import main
+    from bitcomm.studies import compare
+
+    compare.STOP_GRACE_S = 600.0  # a run that did not stop is waited for far longer than the test waits
+
+    sys.exit(main(sys.argv[1:]))
+"""
+"""`bitcomm compare` with a Ctrl-C to its process group as its worker starts."""
+
+
+def test_ctrl_c_as_a_studys_workers_start_stops_it_quietly_and_at_once(tmp_path: Path) -> None:
+    """A Ctrl-C while a study's worker started printed the worker's traceback (KeyboardInterrupt in an import), and,
+    once the worker ignored Ctrl-C but before it took its run, the study's own request to stop was lost: the run
+    trained on until the study ended it, unsaved, `STOP_GRACE_S` (a minute) later. It now starts no run."""
+    script = tmp_path / "ctrl_c_at_start.py"
+    script.write_text(CTRL_C_AT_START)
+    argv = [*TINY, "--episodes", "100000", "--seeds", "1", "--techniques", "improved-bitwise"]
+    proc = subprocess.Popen(
+        [sys.executable, str(script), "compare", *argv, "--jobs", "1", "--out", str(tmp_path / "study")],
+        env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as in a terminal, even under CI
+    )  # fmt: skip
+    try:
+        _, err = proc.communicate(timeout=120)  # long before the study would end the run at once
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130 and "Traceback" not in err and "leaked" not in err, err
+    assert err.strip().splitlines()[-1] == "bitcomm compare: interrupted"
+    assert not (tmp_path / "study" / "runs" / "improved-bitwise" / "seed0" / "checkpoints").exists()
 
 
 def test_a_quick_studys_equal_wall_clock_is_not_read_as_0_seconds() -> None:

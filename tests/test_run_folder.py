@@ -1122,6 +1122,37 @@ def test_a_stop_signal_repeated_at_once_is_one_request(monkeypatch: pytest.Monke
         signal.signal(signal.SIGINT, previous)
 
 
+def test_a_stop_asked_while_the_last_checkpoint_is_saved_stops_the_run(tmp_path: Path) -> None:
+    """Ctrl-C or SIGTERM while the last batch's checkpoint was saved (its plot takes a second) was dropped: the run
+    went on to its final evaluation (`--eval-episodes`, minutes for a large grid) and exited 0. It stops, saved."""
+    from types import SimpleNamespace
+
+    from bitcomm.learn.run_folder import Progress, train_batches
+    from bitcomm.stop_signals import Stopped
+
+    cfg: Any = SimpleNamespace(episodes=32, num_envs=16, checkpoint_seconds=3600)
+    prog = Progress()
+    logger: Any = SimpleNamespace(log=lambda row: None, close=lambda: None)
+
+    def play_and_learn() -> dict[str, Any]:
+        prog.episodes += 16
+        return {"episodes": prog.episodes}
+
+    def save(rank: float | None) -> Path:
+        if prog.episodes == cfg.episodes:  # the signal comes while the last checkpoint is written
+            signal.raise_signal(signal.SIGINT)
+        return tmp_path / f"ckpt{prog.episodes}"
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(Stopped) as stopped:
+            train_batches(cfg, prog, logger, play_and_learn, save, lambda row: {}, progress=False)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert stopped.value.exit_code == 130
+    assert stopped.value.episodes == 32 and stopped.value.checkpoint == tmp_path / "ckpt32"
+
+
 def test_a_study_worker_leaves_sigterm_to_its_parent() -> None:
     """`bitcomm compare` stops its runs with SIGTERM at once; only a process started as a program takes it over."""
     import multiprocessing

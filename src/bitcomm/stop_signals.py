@@ -40,6 +40,12 @@ class Stopped(KeyboardInterrupt):
         self.checkpoint = checkpoint
         self.episodes = episodes
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled as what it was made of: a study's run sends its `Stopped` back to the study, and rebuilt from its
+        message (the signal's name) it failed there, which broke the pool: every other run was ended at once,
+        whether or not it had saved the batch it was on."""
+        return type(self), (self.exit_code - 128, self.checkpoint, self.episodes)
+
 
 @contextlib.contextmanager
 def sigterm_interrupts() -> Iterator[None]:

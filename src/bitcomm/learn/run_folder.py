@@ -793,11 +793,16 @@ def train_batches(
                 if signum is not None:
                     saved_or_stopped(signum, prog.episodes, save(rank), bar)
                 if prog.episodes >= cfg.episodes:
-                    return save(rank)
+                    path = save(rank)
+                    break
                 if score is not None or time.monotonic() - last_save >= cfg.checkpoint_seconds:
                     save(rank)
                     last_save = time.monotonic()
-            return save(None if held_out is None else held_out.play())  # resumed at its budget: nothing to play
+            else:
+                path = save(None if held_out is None else held_out.play())  # resumed at its budget: nothing to play
+        # a stop asked while the last checkpoint was saved (its plot takes a second) stops here, not after the
+        # final evaluation: it was dropped, and the command went on to evaluate and exit 0
+        return saved_or_stopped(stop_asked(), prog.episodes, path, bar)
     finally:
         bar.close()
         logger.close()

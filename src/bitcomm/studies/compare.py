@@ -59,7 +59,7 @@ from bitcomm.learn.resume_rules import SAVING, flat
 from bitcomm.plotting import log_scale_suits, save_figure
 from bitcomm.policies.source import TASK_FLAGS
 from bitcomm.stats import mean_interval
-from bitcomm.stop_signals import repeats_count_once, sigterm_interrupts
+from bitcomm.stop_signals import deaf_children, ignore_stop_signals, repeats_count_once, sigterm_interrupts
 from bitcomm.studies.tables import task_title
 
 if TYPE_CHECKING:
@@ -418,19 +418,30 @@ STOP_GRACE_S = 60.0
 takes seconds) before it ends them at once; a second Ctrl-C ends them at once."""
 
 
-def _init_worker(parent: int) -> None:
+_stopping: Any = None
+"""In a study's worker: the study's flag (a shared byte) that it is stopping its runs (`stop_runs`)."""
+
+
+def _init_worker(parent: int, stopping: Any = None) -> None:
+    global _stopping
+    _stopping = stopping
+    # started deaf to the stop signals (`execute_all`): a Ctrl-C while it imported bitcomm printed a traceback, and
+    # a SIGTERM of the group then killed it, breaking the pool
+    # out of the study's process group: what signals the group (`timeout`, `kill -- -PGID`) reaches the parent alone,
+    # which asks each run to save its batch (`stop_runs`); a SIGTERM of the group ended them at once, unsaved
+    os.setpgrp()
+    # an idle worker ignores Ctrl-C: one dying of it between runs would break the pool, which then ends the others
+    # at once, saving or not (`execute` takes Ctrl-C while it works on a run); SIGTERM keeps its default, once a
+    # group's copy that came while it started is dropped (`stop_runs` ends a worker with it)
+    ignore_stop_signals()
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
     import torch
 
     from bitcomm.worker_exit import end_with_parent
 
     end_with_parent(parent)  # a study killed alone must not leave its runs training
-    # out of the study's process group: what signals the group (`timeout`, `kill -- -PGID`) reaches the parent alone,
-    # which asks each run to save its batch (`stop_runs`); a SIGTERM of the group ended them at once, unsaved
-    os.setpgrp()
     torch.set_num_threads(1)  # parallel runs must not share (or fight over) thread pools
-    # an idle worker ignores Ctrl-C: one dying of it between runs would break the pool, which then ends the others
-    # at once, saving or not (`execute` takes Ctrl-C while it works on a run)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
@@ -451,6 +462,10 @@ def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
     if worker:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
+        # asked to stop before it took Ctrl-C (starting, or between two runs): the signal was ignored, and the run
+        # then trained on till the study ended it at once, `STOP_GRACE_S` later, unsaved
+        if worker and _stopping is not None and _stopping.value:
+            raise KeyboardInterrupt
         with run_lock(run.folder):
             status = run_status(run)
             if status != "done":
@@ -488,12 +503,14 @@ def execute_all(
     done = len(runs) - len(todo)
     log(f"{plural(len(runs), 'run', 'runs')}, {done} finished and evaluated; {len(todo)} to go on {workers}")
     ctx = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(),))
+    stopping = ctx.Value("b", 0, lock=False)
+    pool = ProcessPoolExecutor(processes, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(), stopping))
     # the repeats' guard is in place before any signal comes: `timeout`'s second copy, landing before the runs were
     # asked to stop, left the pool waiting on a run of hours
     with pool, sigterm_interrupts(), repeats_count_once():
         try:
-            futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
+            with deaf_children():  # the pool starts its processes as the runs are submitted
+                futures = {pool.submit(execute, r, cfg.eval_episodes, cfg.eval_seed): r for r in todo}
             for k, future in enumerate(as_completed(futures), 1):
                 run, status = futures[future], future.result()
                 log(f"[{k}/{len(todo)}] {describe(run, status, cfg)}")
@@ -503,16 +520,20 @@ def execute_all(
             try:
                 pool.shutdown(wait=False, cancel_futures=True)
             finally:
-                stop_runs(running)  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
+                stop_runs(running, stopping)  # a run's checkpoints are atomic: `bitcomm compare` again resumes it
             raise
 
 
-def stop_runs(processes: list[Any], grace_s: float = STOP_GRACE_S) -> None:
+def stop_runs(processes: list[Any], stopping: Any = None, grace_s: float | None = None) -> None:
     """Ask each worker to stop its run after the batch it is on and save it (SIGINT, as Ctrl-C would: the workers are
     out of the terminal's process group, `_init_worker`), and wait up to `grace_s` for them to end; then, or on a
     second interrupt (`bitcomm.stop_signals.repeats_count_once`), end them at once. Ended at once, a run stopped
-    before its first checkpoint (every `checkpoint_seconds`) would start again from nothing."""
-    deadline = time.monotonic() + grace_s
+    before its first checkpoint (every `checkpoint_seconds`) would start again from nothing. `stopping`, the workers'
+    shared flag, is raised first: a worker that ignored the signal (it was starting, or between runs) starts no run.
+    `grace_s` defaults to `STOP_GRACE_S`."""
+    deadline = time.monotonic() + (STOP_GRACE_S if grace_s is None else grace_s)
+    if stopping is not None:
+        stopping.value = 1
     try:
         for process in processes:
             if process.is_alive():
