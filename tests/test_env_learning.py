@@ -33,6 +33,7 @@ from bitcomm.learn.env_learner import EnvLearner
 from bitcomm.learn.env_rollout import EnvRollout, env_factory, play
 from bitcomm.learn.env_run import train_env
 from bitcomm.learn.estimators import Advantages, discounted_returns
+from bitcomm.learn.run_folder import RESUMES
 
 SPEC = f"{__name__}:SignalEnv"
 
@@ -774,7 +775,7 @@ def test_an_env_error_mid_run_saves_what_was_learned(tmp_path: Path) -> None:
     saved = tmp_path / "run" / "checkpoints" / "ckpt_000000008.safetensors"
     assert str(err.value) == (
         f"invalid rewards['speaker']=nan: the env's rewards must be finite numbers; saved after 8 episodes as "
-        f"{saved}; --resume goes on"
+        f"{saved}; {RESUMES}"
     )
     assert saved.is_file()
 
@@ -786,7 +787,7 @@ def test_an_env_that_raises_mid_run_keeps_its_traceback_and_saves_what_was_learn
         train_env(cfg, tmp_path / "run", progress=False)
     saved = tmp_path / "run" / "checkpoints" / "ckpt_000000008.safetensors"
     assert err.value.__notes__ == [
-        f"bitcomm: the env raised this while playing a batch; saved after 8 episodes as {saved}; --resume goes on"
+        f"bitcomm: the env raised this while playing a batch; saved after 8 episodes as {saved}; {RESUMES}"
     ]
     assert saved.is_file()
 
@@ -807,7 +808,7 @@ def test_ctrl_c_again_while_a_batch_plays_on_saves_the_batches_before_and_resume
     saved = tmp_path / "run" / "checkpoints" / "ckpt_000000008.safetensors"
     assert err.value.exit_code == 128 + signal.SIGINT and saved.is_file()
     assert (err.value.checkpoint, err.value.episodes) == (saved, 8)  # for a notebook, which reads no printed line
-    assert capsys.readouterr().err.strip() == f"stopped after 8 episodes on SIGINT, saved as {saved}; --resume goes on"
+    assert capsys.readouterr().err.strip() == f"stopped after 8 episodes on SIGINT, saved as {saved}; {RESUMES}"
     resumed = train_env(cfg, tmp_path / "run", resume=True, progress=False)  # fresh copies: 2 resets, no ^C
     calm = dataclasses.replace(cfg, env_kwargs={"reward": "interrupt", "from_reset": 10**9})
     whole = train_env(calm, tmp_path / "whole", progress=False)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import signal
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -31,6 +32,7 @@ from bitcomm.learn.env_config import EnvChannelConfig, EnvTrainConfig
 from bitcomm.learn.env_learner import EnvLearner
 from bitcomm.learn.env_rollout import EnvRollout, make_vec, play
 from bitcomm.learn.env_run import train_env
+from bitcomm.learn.run_folder import RESUMES
 
 SPEC = f"{__name__}:RelayEnv"
 MPE = "mpe2.simple_speaker_listener_v4:parallel_env"
@@ -213,7 +215,10 @@ def test_a_run_whose_worker_dies_saves_what_it_learned_and_resumes_as_if_never_s
         return play(vec, policy, seed, generator, **kw)
 
     monkeypatch.setattr(env_run, "play", dies_in_batch_3)
-    with pytest.raises(ConfigError, match=r"died \(exit code -9\); saved after 10 episodes as .*--resume goes on"):
+    with pytest.raises(
+        ConfigError,
+        match=r"died \(exit code -9\); saved after 10 episodes as .*" + re.escape(RESUMES),
+    ):
         train_env(cfg, tmp_path / "died", progress=False)
     monkeypatch.setattr(env_run, "play", play)
     resumed = train_env(cfg, tmp_path / "died", resume=True, progress=False)

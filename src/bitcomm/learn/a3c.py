@@ -45,6 +45,7 @@ from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.run_folder import (
+    RESUMES,
     Logger,
     Progress,
     checkpoint_weights,
@@ -73,7 +74,7 @@ def _locked(lock: Any, last: str) -> Iterator[None]:
     if not lock.acquire(timeout=LOCK_WAIT_S):
         raise ConfigError(
             f"the a3c workers' shared lock was not released in {LOCK_WAIT_S:g} s: a worker killed while it held "
-            f"it; the run was last saved as {last}, where --resume goes on"
+            f"it; the run was last saved as {last}, where {RESUMES}"
         )
     try:
         yield
@@ -319,7 +320,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                 w, code = next(iter(died.items()))
                 raise ConfigError(
                     f"a3c worker {w} (pid {procs[w].pid}) died (exit code {code}); the others stopped after their "
-                    f"batch, saved after {prog.episodes} episodes as {path}; --resume goes on"
+                    f"batch, saved after {prog.episodes} episodes as {path}; {RESUMES}"
                     + (NO_BATCH_HINT if code == 1 and w not in heard else "")  # an error, not a kill
                 )
             return saved_or_stopped(stop_asked(), prog.episodes, path, bar)

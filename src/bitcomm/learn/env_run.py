@@ -27,6 +27,7 @@ from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_learner import EnvLearner
 from bitcomm.learn.env_rollout import make_vec, play
 from bitcomm.learn.run_folder import (
+    RESUMES,
     Logger,
     Progress,
     check_start,
@@ -93,7 +94,7 @@ def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: boo
             if isinstance(err, KeyboardInterrupt):  # the second Ctrl-C, where the batch's episodes do not end (the
                 # first asks for a stop after the batch): the batch is dropped, the batches before are kept
                 raise stopped(signal.SIGINT, prog.episodes, save(None)) from None
-            saved_as = f"saved after {prog.episodes} episodes as {save(None)}; --resume goes on"
+            saved_as = f"saved after {prog.episodes} episodes as {save(None)}; {RESUMES}"
             if isinstance(err, ConfigError):
                 raise ConfigError(f"{err}; {saved_as}") from None
             err.add_note(f"bitcomm: the env raised this while playing a batch; {saved_as}")  # its traceback is

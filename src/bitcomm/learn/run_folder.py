@@ -657,6 +657,10 @@ FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 """A full disk, a quota used up, a file past the size limit a process was given (`ulimit -f`)."""
 
 
+RESUMES = "--resume (or the same study again) goes on"
+"""Where a stopped run goes on: `train --resume`, or, for a study's run (`compare`, `scaling`), the study again."""
+
+
 @contextlib.contextmanager
 def stops_in_one_line(out: Path) -> Iterator[None]:
     """A file of the run the system will not write (a full disk, a quota, a folder made read-only meanwhile) stops
@@ -668,7 +672,7 @@ def stops_in_one_line(out: Path) -> Iterator[None]:
     except OSError as err:
         latest = latest_name(out)
         once = "there is room" if err.errno in FULL else "the file can be written"
-        resumes = f"--resume (or the same study again) goes on from it once {once}"
+        resumes = f"{RESUMES} from it once {once}"
         then = f"; its latest checkpoint, {latest}, is whole: {resumes}" if latest else " before its first checkpoint"
         raise OSError(err.errno, f"{os_error_line(err)}; the run stopped{then}") from err
 
@@ -693,7 +697,7 @@ def stopped(signum: int, episodes: int, path: Path) -> Stopped:
     """`Stopped` for a run saved at `path` after `episodes`, once its line is printed: what a trainer raises when
     `stop_after_batch` asked it to stop."""
     name = signal.Signals(signum).name
-    print(f"stopped after {episodes} episodes on {name}, saved as {path}; --resume goes on", file=sys.stderr)
+    print(f"stopped after {episodes} episodes on {name}, saved as {path}; {RESUMES}", file=sys.stderr)
     return Stopped(signum, path, episodes)
 
 
