@@ -4,9 +4,10 @@ Plays one batch of the recipe (default: `reinforced`, the default task) with a f
 one update, then profiles `--updates` more on the same batch and prints the share of self CPU time of each
 group of operators (matrix products, activations, indexing and copies, the optimizer, the rest) and the
 slowest operators, and the operations of its matrix products (one more update profiled `with_flops`: per update,
-per agent-step, and per second of their own time, to set against what a core can do). The last line printed is one
-JSON object. It answers "what would a faster update have to remove": `benchmarks/train_speed.py` measures the
-throughput itself.
+per agent-step, and per second of their own time, to set against what a core can do); then, without the profiler,
+one batch's milliseconds by part: playing it, the critic's side of its update and the policy's (`time_parts`). The
+last line printed is one JSON object. It answers "what would a faster update have to remove":
+`benchmarks/train_speed.py` measures the throughput itself.
 
 `--size`, `--bits` and `--messages` profile another task or message head (`--size 32 --bits 10 --messages
 onehot`: the 1,024-output head of the 32x32 study).
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections import defaultdict
+from typing import Any
 
 import numpy as np
 import torch
@@ -53,6 +55,48 @@ def fresh_learner(cfg: TrainConfig, threads: int) -> tuple[Learner, torch.Genera
     torch.set_num_threads(threads)
     torch.manual_seed(0)
     return Learner(cfg), torch.Generator().manual_seed(0)
+
+
+def time_parts(learner: Learner, cfg: TrainConfig, generator: torch.Generator, updates: int) -> dict[str, float]:
+    """Milliseconds of one batch by part, medians over `updates` batches, without the profiler: playing it, and the
+    update's critic and policy sides. On two threads the sync trainer runs the critic's loss and step beside the
+    policy's (`bitcomm.learn.beside`), so a batch takes about play + advantages + the longer of the two; on one
+    thread, or in an A3C worker, it takes their sum. The parts are timed by wrapping this learner's own methods."""
+    import statistics
+    import time
+
+    spent: dict[str, float] = defaultdict(float)
+
+    def timed(part: str | None, method: Any) -> Any:
+        def run(*args: Any, **kwargs: Any) -> Any:
+            t0 = time.perf_counter()
+            out = method(*args, **kwargs)
+            spent[part or ("critic: loss and step" if args[0] is learner.opt_critic else "policy: loss and step")] += (
+                time.perf_counter() - t0
+            )
+            return out
+
+        return run
+
+    # instance attributes shadow the class's methods for this learner alone
+    learner._critic_side = timed("critic: features and advantages", learner._critic_side)  # type: ignore[method-assign]
+    learner._forward = timed("policy: forward", learner._forward)  # type: ignore[method-assign]
+    learner.critic_loss = timed("critic: loss and step", learner.critic_loss)  # type: ignore[method-assign]
+    learner._clipped_step = timed(None, learner._clipped_step)  # type: ignore[method-assign]
+    rows: dict[str, list[float]] = defaultdict(list)
+    collector = Collector(cfg.training_task, cfg.num_envs)
+    for k in range(updates):
+        t0 = time.perf_counter()
+        ro = collector.collect(learner.policy, np.random.SeedSequence(k), generator)
+        rows["play"].append(time.perf_counter() - t0)
+        spent.clear()
+        t0 = time.perf_counter()
+        learner.update(ro, generator)
+        rows["update"].append(time.perf_counter() - t0)
+        for part, seconds in spent.items():
+            rows[part].append(seconds)
+        rows["policy: the rest (its loss terms, sampling)"].append(rows["update"][-1] - sum(spent.values()))
+    return {part: 1000 * statistics.median(v) for part, v in rows.items()}
 
 
 def main() -> None:
@@ -120,6 +164,11 @@ def main() -> None:
         "mflop_per_agent_step": round(flops / agent_steps / 1e6, 3),
         "matrix_gflop_per_s": round(flops / 1e9 / max(flops_s, 1e-9), 1),
     }
+    parts = time_parts(learner, cfg, generator, a.updates)
+    print(f"one batch by part, ms (median of {a.updates}, without the profiler):")
+    for part, ms in parts.items():
+        print(f"  {part:45s} {ms:7.1f}")
+    summary["parts_ms"] = {part: round(ms, 1) for part, ms in parts.items()}
     print(json.dumps(summary))
 
 

@@ -305,6 +305,11 @@ def test_update_profile_groups_an_update_s_time_and_ends_with_json() -> None:
     assert summary["task"] == "10x10, K=7, bitwise"
     assert abs(sum(summary["shares"].values()) - 1.0) < 1e-3 and summary["shares"]["matrix products"] > 0
     assert summary["gflop_per_update"] > 0 and summary["mflop_per_agent_step"] > 0
+    parts = summary["parts_ms"]  # a batch by part: play, then the update's critic and policy sides, which sum to it
+    assert {"play", "update", "critic: loss and step", "policy: loss and step", "policy: forward"} <= parts.keys()
+    assert all(ms >= 0 for ms in parts.values())
+    inside = sum(ms for part, ms in parts.items() if part.startswith(("critic", "policy")))
+    assert inside == pytest.approx(parts["update"], rel=0.25)  # medians of each part: their sum, near the update's
     bad = subprocess.run([*argv[:2], "--updates", "0"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "updates" in bad.stderr.strip().splitlines()[-1]
 
