@@ -5,6 +5,7 @@ retention (the last N and the best). Errors are one line with exit status 2 from
 
 from __future__ import annotations
 
+import csv
 import errno
 import json
 import math
@@ -1094,6 +1095,26 @@ def test_an_a3c_run_from_a_script_without_the_main_guard_names_the_guard(tmp_pat
     last = done.stderr.strip().splitlines()[-1]
     assert "a3c worker 0" in last and "died (exit code 1)" in last, done.stderr
     assert 'under `if __name__ == "__main__":`' in last
+
+
+def test_an_a3c_runs_seconds_of_training_leave_out_its_workers_start(tmp_path: Path) -> None:
+    """`wall_s` is seconds of training over all the run's starts: an a3c run counted its workers' spawn and imports
+    (seconds on a busy machine) as training, at every start, so a resumed run showed more than the same run
+    uninterrupted. A worker here starts `DELAY` s late (a `sitecustomize` that sleeps in spawned processes)."""
+    delay = 2.0
+    slow = tmp_path / "slow"
+    slow.mkdir()
+    (slow / "sitecustomize.py").write_text(
+        f"import sys, time\nif '--multiprocessing-fork' in sys.argv:\n    time.sleep({delay})\n"
+    )
+    env = {**ENV, "PYTHONPATH": os.pathsep.join([str(slow), *sys.path])}
+    out = tmp_path / "a3c"
+    args = ["train", *QUICK, "--mode", "a3c", "--workers", "1", "--episodes", "32", "--out", str(out)]
+    done = subprocess.run([sys.executable, "-m", "bitcomm.cli", *args], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    with (out / "metrics.csv").open(newline="") as f:
+        first = next(csv.DictReader(f))
+    assert float(first["wall_s"]) < delay, first  # one batch of 16 episodes on a 4x4 grid: a fraction of a second
 
 
 def test_an_a3c_run_resumed_on_ray_is_one_line_that_can_be_followed(tmp_path: Path, capsys) -> None:

@@ -176,6 +176,7 @@ def _worker(
         local = list(learner.policy.parameters()) + list(learner.critic.parameters())
         remote = list(shared[0].parameters()) + list(shared[1].parameters())
         collector = Collector(cfg.training_task, cfg.num_envs)
+        results.put(("ready", w))  # started: the run's seconds of training count from the first worker's
         parent = mp.parent_process()
         while True:
             if parent is not None and not parent.is_alive():  # the main process was killed: stop, do not linger
@@ -265,6 +266,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     done: set[int] = set()
     died: dict[int, int] = {}  # worker -> exit code, of the workers killed (not one that reported an error)
     heard: set[int] = set()  # the workers that sent a batch
+    ready: set[int] = set()  # the workers started (their `Learner` built), before their first batch
     with stop_after_batch() as stop_asked:  # till the workers are gone: a signal meanwhile is a request
         try:
             with deaf_children():  # till `ignore_stop_signals`: killed mid-batch, a worker could hold the lock
@@ -291,6 +293,11 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                     raise RuntimeError(f"a3c worker {msg[1]} failed:\n{msg[2]}")
                 if msg[0] == "done":
                     done.add(msg[1])
+                    continue
+                if msg[0] == "ready":
+                    if not ready:  # a process spawned and its imports are not training: a resume would add them
+                        t_start = time.perf_counter()
+                    ready.add(msg[1])
                     continue
                 _, w, length, team_return, success, sent_greedy, stats = msg
                 heard.add(w)
