@@ -782,6 +782,22 @@ def test_each_start_and_resume_is_recorded_with_its_machine(run: Path, capsys) -
     assert run_machines(run) == ["unrecorded", machine_label(machine())]
 
 
+def test_each_start_records_its_budget_and_where_it_ran(run: Path) -> None:
+    """config.json's config is the last start's: a run resumed to a larger budget from Python (whose command line
+    does not show it) said nothing of the budget its first part decayed its learning rates over, nor where or how
+    often that part saved; each start now records the options a resume may change as it had them."""
+    import dataclasses
+
+    from bitcomm.learn.run import train
+
+    first = tiny_config()
+    train(dataclasses.replace(first, episodes=64, checkpoint_seconds=5.0), run, resume=True, progress=False)
+    starts = json.loads((run / "config.json").read_text())["starts"]
+    assert [s["options"]["episodes"] for s in starts] == [first.episodes, 64]
+    assert [s["options"]["checkpoint_seconds"] for s in starts] == [first.checkpoint_seconds, 5.0]
+    assert starts[1]["options"]["backend"] == "local" and "lr" not in starts[1]["options"]
+
+
 def tensorboard_scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
     """Each TensorBoard tag of a run folder with its (step, value) pairs, as TensorBoard shows them."""
     from tensorboard.backend.event_processing.event_accumulator import SCALARS, EventAccumulator

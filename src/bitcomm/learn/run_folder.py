@@ -55,7 +55,7 @@ from bitcomm.errors import ConfigError, bad_value, one_line, os_error_line
 from bitcomm.files import naming, write_atomic, write_text_atomic
 from bitcomm.learn.config import TrainConfig
 from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
-from bitcomm.learn.resume_rules import changed_on_resume
+from bitcomm.learn.resume_rules import RESUME_MAY_CHANGE, changed_on_resume
 from bitcomm.plotting import save_figure
 from bitcomm.run_lock import run_lock
 from bitcomm.stop_signals import REPEAT_S, Stopped
@@ -132,6 +132,10 @@ def machine_label(record: dict[str, Any] | None) -> str:
     return f"{record.get('cpu', 'unknown')}, {record.get('cores', '?')} cores"
 
 
+START_OPTIONS = "options"
+"""The key of a start (config.json's `starts`) holding the options a resume may change (`RESUME_MAY_CHANGE`) as that
+start had them: the top-level config is the last start's, and a run resumed to a larger budget annealed its first
+part over the budget it had then (from Python, whose command line does not show it, nothing else says so)."""
 CARRIED = ("oracle_mean_episode_length", "held_out_seed")
 """config.json keys a resumed run keeps from its first start (measured once, not again at every resume)."""
 
@@ -141,9 +145,15 @@ def write_config(
 ) -> None:
     """config.json: the config, seed, versions, git commit and command of this start, `measure(cfg)`'s figures
     (a fresh run's) or those a resumed run keeps (`CARRIED`), and `starts`: one entry per start or resume
-    (episodes played before it, time, commit, versions, threads, machine, command), so a run resumed on
-    another machine or commit says which part of it ran where."""
-    start = {"episodes": int(saved["episodes"]) if saved is not None else 0, **provenance.record()}
+    (episodes played before it, time, commit, versions, threads, machine, command, and the options a resume may
+    change as it had them: `START_OPTIONS`), so a run resumed on another machine or commit, or to a larger budget,
+    says which part of it ran where and how."""
+    given = cfg.to_dict()
+    start = {
+        "episodes": int(saved["episodes"]) if saved is not None else 0,
+        **provenance.record(),
+        START_OPTIONS: {k: given[k] for k in sorted(RESUME_MAY_CHANGE) if k in given},
+    }
     starts: list[dict[str, Any]] = []
     if saved is None:
         extra = measure(cfg) if measure is not None else {}
