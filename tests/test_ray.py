@@ -266,6 +266,29 @@ def test_an_actor_that_cannot_start_stops_the_run_with_its_cause(cluster: str) -
     assert actors.restarts == MAX_FAILURES - 1
 
 
+def test_a_ray_runs_seconds_of_training_leave_out_its_actors_start(
+    cluster: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`wall_s` is seconds of training over all the run's starts: a Ray run counted its actors' start (a process, its
+    imports, its envs) as training, at every start, so a resumed run showed more than the same run uninterrupted.
+    The actors here take `delay` s to start."""
+    from bitcomm.learn import ray_backend
+    from bitcomm.learn.run import train
+
+    delay = 3.0
+
+    class Slow(ray_backend.RolloutWorker):
+        def __init__(self, config: dict[str, Any]) -> None:
+            time.sleep(delay)
+            super().__init__(config)
+
+    monkeypatch.setattr(ray_backend, "RolloutWorker", Slow)
+    out = tmp_path / "run"
+    train(tiny_config(episodes=32), out, progress=False, address=cluster)
+    first = rows(out)[0]  # one update on 2 batches of 16 episodes on 4x4, whose seconds a loaded machine stretches
+    assert float(first["wall_s"]) - float(first["ray/update_s"]) < delay, first
+
+
 @pytest.mark.parametrize(
     ("argv", "flag"),
     [

@@ -1117,7 +1117,7 @@ def test_an_a3c_runs_seconds_of_training_leave_out_its_workers_start(tmp_path: P
     """`wall_s` is seconds of training over all the run's starts: an a3c run counted its workers' spawn and imports
     (seconds on a busy machine) as training, at every start, so a resumed run showed more than the same run
     uninterrupted. A worker here starts `DELAY` s late (a `sitecustomize` that sleeps in spawned processes)."""
-    delay = 2.0
+    delay = 3.0
     slow = tmp_path / "slow"
     slow.mkdir()
     (slow / "sitecustomize.py").write_text(

@@ -88,6 +88,10 @@ class RolloutWorker:
         self.collector = Collector(self.cfg.training_task, self.cfg.num_envs)
         self.version = -1
 
+    def ready(self) -> bool:
+        """Answered once the actor is built (its process started, its imports done, its envs made)."""
+        return True
+
     def collect(
         self, weights: dict[str, np.ndarray], version: int, batch: int, formed: float | None = 0.0
     ) -> dict[str, Any]:
@@ -276,6 +280,12 @@ class Actors:
         name = f"{ACTOR_PREFIX}-{self.token}-{w}.{self.generation[w]}"
         return self.cls.options(name=name).remote(self.config)  # type: ignore[attr-defined]
 
+    def started(self) -> None:
+        """Wait for the actors to be built: processes started and their imports are not training, and counted in
+        `wall_s` they would be added again at every resume (an actor that failed to start is met, and replaced, when
+        its first batch is asked for)."""
+        self.ray.wait([a.ready.remote() for a in self.actors], num_returns=len(self.actors))
+
     def launch(self, w: int, batch: int, weights: Any, version: int, formed: float | None = 0.0) -> None:
         self.inflight[self.actors[w].collect.remote(weights, version, batch, formed)] = (w, batch, formed)
 
@@ -414,6 +424,8 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
 
     with stop_after_batch() as stop_asked:  # a stop signal meanwhile is a request: in-flight batches are used
         try:
+            actors.started()
+            t_start = time.perf_counter()  # the run's seconds of training count from here (`Actors.started`)
             if S == 0:  # synchronous: every actor plays one batch with the same weights, one update on them all
                 while prog.episodes < cfg.episodes and stop_asked() is None:
                     for w in range(min(N, math.ceil((cfg.episodes - prog.episodes) / cfg.num_envs))):
