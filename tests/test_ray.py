@@ -299,18 +299,22 @@ def closed_port() -> int:
         return int(sock.getsockname()[1])
 
 
-@pytest.mark.parametrize("scheme", ["", "ray://"])
+@pytest.mark.parametrize("scheme", ["", "ray://", "auto"])
 def test_an_address_where_nothing_listens_gets_one_line_quickly(
     scheme: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Ray itself retried such an address for many minutes ("Failed to connect to GCS ... within 5 seconds"
-    every ~40 s): the run stops at once, with one line, before Ray is asked (even with a Ray started here)."""
+    every ~40 s): the run stops at once, with one line, before Ray is asked (even with a Ray started here).
+    `auto` is checked where Ray finds it (`RAY_ADDRESS` here): before, it made the run folder and then waited."""
 
     def no_init(*args: Any, **kwargs: Any) -> None:
         raise AssertionError("ray.init was called")
 
     monkeypatch.setattr(ray, "init", no_init)
     address = f"{scheme}127.0.0.1:{closed_port()}"
+    if scheme == "auto":
+        monkeypatch.setenv("RAY_ADDRESS", address[4:])
+        address = "auto"
     out = tmp_path / "run"
     argv = ["train", *TINY, "--episodes", "128", "--backend", "ray", "--workers", "1", "--threads", "1"]
     t0 = time.monotonic()
@@ -322,6 +326,52 @@ def test_an_address_where_nothing_listens_gets_one_line_quickly(
     assert lines[0].startswith(f"bitcomm train: error: invalid address='{address}': cannot reach a Ray cluster there (")
     assert "Connection refused" in lines[0]
     assert not out.exists()  # the address is checked before the run folder is made
+
+
+@pytest.mark.parametrize(
+    ("case", "error"),
+    [
+        ("no ray", "invalid backend='ray': Ray is not installed (pip install 'bitcomm[ray]')"),
+        ("3 workers", "invalid workers=3: at most this machine's CPUs (2) on the Ray instance started here: "),
+        ("auto", "invalid address='auto': no Ray cluster found (RAY_ADDRESS is not set and no `ray start` runs "),
+    ],
+)
+def test_what_a_ray_run_would_be_refused_is_refused_in_one_line_before_its_folder(
+    case: str, error: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ray not importable, more actors than a private instance takes (before, 1000 actors were started on a
+    2-core machine, one CPU each), `auto` where Ray finds no cluster: one line, no Ray started (before, the run
+    folder was made and "run folder:" printed first)."""
+
+    def no_init(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("ray.init was called")
+
+    monkeypatch.setattr(ray, "init", no_init)
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)  # as a command's process, not this module's
+    argv = ["train", *TINY, "--episodes", "16", "--backend", "ray", "--workers", "1", "--out", str(tmp_path / "run")]
+    if case == "no ray":
+        monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` fails
+    elif case == "3 workers":
+        monkeypatch.setattr(os, "cpu_count", lambda: 2)
+        argv += ["--workers", "3"]
+    else:
+        import ray._private.services as services
+
+        monkeypatch.delenv("RAY_ADDRESS", raising=False)
+        monkeypatch.setattr(services, "find_gcs_addresses", lambda: [])
+        monkeypatch.setattr(services, "find_bootstrap_address", lambda temp_dir: None)
+        argv += ["--address", "auto"]
+    code = main(argv)
+    printed = capsys.readouterr()
+    lines = printed.err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and not printed.out, (lines, printed.out)
+    assert lines[0].startswith(f"bitcomm train: error: {error}"), lines
+    assert not (tmp_path / "run").exists()
+    if case == "3 workers":  # the default runs on any machine
+        from bitcomm.learn.ray_backend import check_ray
+
+        monkeypatch.setattr(os, "cpu_count", lambda: 1)
+        check_ray(None, 2)
 
 
 @pytest.mark.parametrize(

@@ -138,8 +138,39 @@ GRPC_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0
 with a SETTINGS frame at once; a silent listener or an HTTP/1 server does not."""
 
 
+def import_ray() -> Any:
+    """The `ray` module; one line where it cannot be imported."""
+    try:
+        import ray
+    except ImportError:
+        raise bad_value("backend", "ray", "Ray is not installed (pip install 'bitcomm[ray]')") from None
+    return ray
+
+
+def private_cpus() -> int:
+    """The most rollout actors a private Ray instance (no `address`) takes: this machine's CPUs, and at least
+    `TrainConfig.workers`' default, so that the default runs anywhere."""
+    return max(os.cpu_count() or 1, TrainConfig.workers)
+
+
+def check_ray(address: str | None, workers: int) -> None:
+    """What `connect` would refuse, checked before the run folder is made, in one line: Ray not installed, an
+    address where no cluster answers (`check_address`), or more actors than a private instance takes
+    (`private_cpus`; a cluster's CPUs are known once connected). Starts nothing."""
+    ray = import_ray()
+    if address is None and not ray.is_initialized() and workers > (cpus := private_cpus()):
+        raise bad_value(
+            "workers",
+            workers,
+            f"at most this machine's CPUs ({cpus}) on the Ray instance started here: each rollout actor takes one "
+            "(more: a cluster's, with --address)",
+        )
+    check_address(address)
+
+
 def check_address(address: str | None, timeout: float = PROBE_S) -> None:
-    """One line, within about `timeout` seconds, unless `address` is None, `auto` or a `HOST:PORT` (or
+    """One line, within about `timeout` seconds, unless `address` is None, `auto` where Ray finds a cluster
+    (`RAY_ADDRESS`, else the last `ray start` on this machine) that answers, or a `HOST:PORT` (or
     `ray://HOST:PORT`) where a gRPC server answers (a TCP connection is enough with `RAY_USE_TLS`, whose
     handshake this does not make): Ray would wait for anything else for many minutes. Starts nothing, so a
     caller may check before it makes the run folder."""
@@ -147,9 +178,10 @@ def check_address(address: str | None, timeout: float = PROBE_S) -> None:
         return
     if not isinstance(address, str):
         raise bad_value("address", address, ADDRESS_FORMS)
-    if address.strip() == "auto":
+    found = _auto(address) if address.strip() == "auto" else address
+    if found is None:
         return
-    parts = host_port(address)
+    parts = host_port(found)
     if parts is None:
         raise bad_value("address", address, ADDRESS_FORMS)
     host, port = parts
@@ -173,6 +205,24 @@ def check_address(address: str | None, timeout: float = PROBE_S) -> None:
             "address", address, f"something listens there but does not answer as a Ray cluster (gRPC) does: {why}"
         )
     raise bad_value("address", address, f"cannot reach a Ray cluster there (nothing accepts a connection: {why})")
+
+
+def _auto(address: str) -> str | None:
+    """Where Ray's `auto` leads (a `HOST:PORT`, probed as a typed one), one line where it finds no cluster; None
+    where this Ray cannot say (its lookup is not public API)."""
+    try:
+        from ray._private.services import get_ray_address_from_environment
+    except ImportError:
+        return None
+    try:
+        found = get_ray_address_from_environment(address, None)
+    except ConnectionError:
+        raise bad_value(
+            "address", address, "no Ray cluster found (RAY_ADDRESS is not set and no `ray start` runs on this machine)"
+        ) from None
+    except Exception:  # noqa: BLE001 - Ray's own, which ray.init meets again and reports
+        return None
+    return found if isinstance(found, str) and host_port(found) is not None else None
 
 
 def _left(deadline: float) -> float:
@@ -311,10 +361,7 @@ def train_ray(
 ) -> Path:
     """Train on Ray until `cfg.episodes` episodes are consumed; the caller holds the run folder's lock
     (`bitcomm.learn.run.train`). Returns the latest checkpoint."""
-    try:
-        import ray
-    except ImportError:
-        raise bad_value("backend", cfg.backend, "Ray is not installed (pip install 'bitcomm[ray]')") from None
+    ray = import_ray()
     if cfg.backend != "ray":
         raise bad_value("backend", cfg.backend, "train_ray needs backend='ray'")
     before = signal.getsignal(signal.SIGTERM)

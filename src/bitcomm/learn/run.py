@@ -53,9 +53,9 @@ def train(
     keep_freed_memory()
     check_start(out, resume)
     if cfg.backend == "ray":
-        from bitcomm.learn.ray_backend import check_address
+        from bitcomm.learn.ray_backend import check_ray
 
-        check_address(address)  # before the folder is made: Ray itself waits minutes for a host that is not there
+        check_ray(address, cfg.workers)  # before the folder is made: Ray itself waits minutes for a host not there
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
