@@ -266,6 +266,35 @@ def test_an_actor_that_cannot_start_stops_the_run_with_its_cause(cluster: str) -
     assert actors.restarts == MAX_FAILURES - 1
 
 
+def test_a_sigterm_while_a_private_instance_starts_stops_the_call_with_the_instance_shut_down(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """`timeout` firing while Ray starts (its servers' start holds the stop signals): the held SIGTERM went, once let
+    through, to the handler `ray.init` installs (Ray's own stack dump and SIGABRT, a Ray left running); it stops the
+    call as `Stopped` (exit 143), the instance shut down and the caller's SIGTERM handler back."""
+    from bitcomm.learn.ray_backend import connect
+    from bitcomm.stop_signals import Stopped
+
+    up, shut = [False], []
+
+    def init(*args: Any, **kwargs: Any) -> None:  # as ray.init: its handler in, then the signal, held
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(15))
+        up[0] = True
+        signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGTERM)  # `timeout`'s, to this thread
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: up[0])
+    monkeypatch.setattr(ray, "init", init)
+    monkeypatch.setattr(ray, "shutdown", lambda: shut.append(True))
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        with pytest.raises(Stopped) as stop:
+            connect(None, 1)
+        assert stop.value.exit_code == 128 + signal.SIGTERM and shut == [True]
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 @pytest.mark.parametrize(
     ("argv", "flag"),
     [

@@ -25,6 +25,7 @@ the next batch index; batches dropped for staleness or lost in flight were playe
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -59,7 +60,7 @@ from bitcomm.learn.run_folder import (
 )
 from bitcomm.policies.denormals import flush_denormals
 from bitcomm.policies.networks import PolicyNet
-from bitcomm.stop_signals import deaf_children
+from bitcomm.stop_signals import deaf_children, sigterm_interrupts
 
 ACTOR_PREFIX = "bitcomm-rollout"
 """Rollout actors are named `<prefix>-<run token>-<worker>.<generation>` (`ray.util.list_named_actors` lists them)."""
@@ -265,39 +266,63 @@ def _candidates(host: str) -> Iterator[str]:
             yield node
 
 
-def connect(address: str | None, workers: int) -> bool:
+def connect(address: str | None, workers: int) -> tuple[bool, Any]:
     """Join the cluster at `address`, shipping this bitcomm package to its workers (Ray's `py_modules`: the
     nodes need its dependencies, not bitcomm); None: a Ray already started in this process, else a new local
     instance with a CPU per actor, whose servers (in the driver's process group) are deaf to the stop signals the
-    driver takes (`deaf_children`), so that the driver can save. Returns whether this call started Ray; one line if no
+    driver takes (`deaf_children`), so that the driver can save. Returns whether this call started Ray (and shuts
+    it down again if anything stops the call after) and the SIGTERM handler `ray.init` installed, which ends a run
+    unsaved (`sys.exit(15)`): the caller's is back in its place, before a stop signal held while the private
+    instance started is let through (one ended the driver with Ray's stack dump, SIGABRT); a SIGTERM meanwhile
+    raises `Stopped` (`sigterm_interrupts`), where nothing else takes it. One line if no
     cluster answers or it is too small (`bitcomm.learn.run.train` has checked the address with `check_address`
     before making the run folder)."""
+    with sigterm_interrupts():  # a SIGTERM while Ray starts stops the call, which shuts that Ray down
+        return _connect(address, workers)
+
+
+def _connect(address: str | None, workers: int) -> tuple[bool, Any]:
     import ray
 
     import bitcomm
 
+    before = rays = signal.getsignal(signal.SIGTERM)
     started = False
-    if not ray.is_initialized():
-        try:
-            if address is None:
-                cpus = max(workers, os.cpu_count() or 1)
-                with deaf_children():
-                    ray.init(
-                        "local", num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False
-                    )
-            else:
-                code = {"py_modules": [str(Path(bitcomm.__file__).parent)]}
-                ray.init(address, runtime_env=code, log_to_driver=False, configure_logging=False)
-        except (ConnectionError, RuntimeError, ValueError) as err:
-            reason = f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
-            raise bad_value("address", address, f"no Ray cluster answers there ({reason})") from None
-        started = True
-    cpus = ray.cluster_resources().get("CPU", 0)
-    if cpus < workers:
+    try:
+        if not ray.is_initialized():
+            try:
+                with deaf_children() if address is None else contextlib.nullcontext():
+                    try:
+                        if address is None:
+                            cpus = max(workers, os.cpu_count() or 1)
+                            ray.init(
+                                "local",
+                                num_cpus=cpus,
+                                include_dashboard=False,
+                                log_to_driver=False,
+                                configure_logging=False,
+                            )
+                        else:
+                            code = {"py_modules": [str(Path(bitcomm.__file__).parent)]}
+                            ray.init(address, runtime_env=code, log_to_driver=False, configure_logging=False)
+                    finally:
+                        started = ray.is_initialized()
+                        rays = signal.getsignal(signal.SIGTERM)
+                        _set_sigterm(before)
+            except (ConnectionError, RuntimeError, ValueError) as err:
+                reason = f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
+                raise bad_value("address", address, f"no Ray cluster answers there ({reason})") from None
+        cpus = ray.cluster_resources().get("CPU", 0)
+        if cpus < workers:
+            raise bad_value(
+                "workers", workers, f"at most the Ray cluster's CPUs ({cpus:g}): each rollout actor takes one"
+            )
+    except BaseException:
         if started:
+            _set_sigterm(rays)
             ray.shutdown()
-        raise bad_value("workers", workers, f"at most the Ray cluster's CPUs ({cpus:g}): each rollout actor takes one")
-    return started
+        raise
+    return started, rays
 
 
 def _cause(err: Exception) -> str:
@@ -364,11 +389,8 @@ def train_ray(
     ray = import_ray()
     if cfg.backend != "ray":
         raise bad_value("backend", cfg.backend, "train_ray needs backend='ray'")
-    before = signal.getsignal(signal.SIGTERM)
-    started = connect(address, cfg.workers)
-    rays = signal.getsignal(signal.SIGTERM)
+    started, rays = connect(address, cfg.workers)  # `_train` stops the run saved, where `ray.init`'s handler did not
     try:
-        _set_sigterm(before)  # `ray.init`'s handler ends the run unsaved (`sys.exit(15)`): `_train` stops it saved
         return _train(cfg, out, resume, progress)
     finally:
         _set_sigterm(rays)
