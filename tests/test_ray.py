@@ -420,6 +420,16 @@ def test_a_malformed_address_gets_one_line(address: Any, tmp_path: Path) -> None
             train(tiny_config(workers=1), tmp_path / "run", progress=False, address=address)
 
 
+def test_an_address_for_a_config_that_does_not_train_on_ray_gets_one_line(tmp_path: Path) -> None:
+    """As `--address` without `--backend ray` does: before, `train` trained locally and left the address unread."""
+    from bitcomm.errors import ConfigError
+    from bitcomm.learn.run import train
+
+    with pytest.raises(ConfigError, match=r"^invalid address='10.1.2.3:6379': only with backend='ray' \(this config"):
+        train(tiny_config(backend="local"), tmp_path / "run", progress=False, address="10.1.2.3:6379")
+    assert not (tmp_path / "run").exists()
+
+
 def test_an_address_check_passes_where_ray_or_another_grpc_server_answers_and_for_auto(
     cluster: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
