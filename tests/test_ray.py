@@ -289,6 +289,35 @@ def test_a_ray_runs_seconds_of_training_leave_out_its_actors_start(
     assert float(first["wall_s"]) - float(first["ray/update_s"]) < delay, first
 
 
+def test_a_sigterm_while_a_private_instance_starts_stops_the_call_with_the_instance_shut_down(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """`timeout` firing while Ray starts (its servers' start holds the stop signals): the held SIGTERM went, once let
+    through, to the handler `ray.init` installs (Ray's own stack dump and SIGABRT, a Ray left running); it stops the
+    call as `Stopped` (exit 143), the instance shut down and the caller's SIGTERM handler back."""
+    from bitcomm.learn.ray_backend import connect
+    from bitcomm.stop_signals import Stopped
+
+    up, shut = [False], []
+
+    def init(*args: Any, **kwargs: Any) -> None:  # as ray.init: its handler in, then the signal, held
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(15))
+        up[0] = True
+        signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGTERM)  # `timeout`'s, to this thread
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: up[0])
+    monkeypatch.setattr(ray, "init", init)
+    monkeypatch.setattr(ray, "shutdown", lambda: shut.append(True))
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        with pytest.raises(Stopped) as stop:
+            connect(None, 1)
+        assert stop.value.exit_code == 128 + signal.SIGTERM and shut == [True]
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 @pytest.mark.parametrize(
     ("argv", "flag"),
     [
@@ -322,18 +351,22 @@ def closed_port() -> int:
         return int(sock.getsockname()[1])
 
 
-@pytest.mark.parametrize("scheme", ["", "ray://"])
+@pytest.mark.parametrize("scheme", ["", "ray://", "auto"])
 def test_an_address_where_nothing_listens_gets_one_line_quickly(
     scheme: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Ray itself retried such an address for many minutes ("Failed to connect to GCS ... within 5 seconds"
-    every ~40 s): the run stops at once, with one line, before Ray is asked (even with a Ray started here)."""
+    every ~40 s): the run stops at once, with one line, before Ray is asked (even with a Ray started here).
+    `auto` is checked where Ray finds it (`RAY_ADDRESS` here): before, it made the run folder and then waited."""
 
     def no_init(*args: Any, **kwargs: Any) -> None:
         raise AssertionError("ray.init was called")
 
     monkeypatch.setattr(ray, "init", no_init)
     address = f"{scheme}127.0.0.1:{closed_port()}"
+    if scheme == "auto":
+        monkeypatch.setenv("RAY_ADDRESS", address[4:])
+        address = "auto"
     out = tmp_path / "run"
     argv = ["train", *TINY, "--episodes", "128", "--backend", "ray", "--workers", "1", "--threads", "1"]
     t0 = time.monotonic()
@@ -345,6 +378,52 @@ def test_an_address_where_nothing_listens_gets_one_line_quickly(
     assert lines[0].startswith(f"bitcomm train: error: invalid address='{address}': cannot reach a Ray cluster there (")
     assert "Connection refused" in lines[0]
     assert not out.exists()  # the address is checked before the run folder is made
+
+
+@pytest.mark.parametrize(
+    ("case", "error"),
+    [
+        ("no ray", "invalid backend='ray': Ray is not installed (pip install 'bitcomm[ray]')"),
+        ("3 workers", "invalid workers=3: at most this machine's CPUs (2) on the Ray instance started here: "),
+        ("auto", "invalid address='auto': no Ray cluster found (RAY_ADDRESS is not set and no `ray start` runs "),
+    ],
+)
+def test_what_a_ray_run_would_be_refused_is_refused_in_one_line_before_its_folder(
+    case: str, error: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ray not importable, more actors than a private instance takes (before, 1000 actors were started on a
+    2-core machine, one CPU each), `auto` where Ray finds no cluster: one line, no Ray started (before, the run
+    folder was made and "run folder:" printed first)."""
+
+    def no_init(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("ray.init was called")
+
+    monkeypatch.setattr(ray, "init", no_init)
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)  # as a command's process, not this module's
+    argv = ["train", *TINY, "--episodes", "16", "--backend", "ray", "--workers", "1", "--out", str(tmp_path / "run")]
+    if case == "no ray":
+        monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` fails
+    elif case == "3 workers":
+        monkeypatch.setattr(os, "cpu_count", lambda: 2)
+        argv += ["--workers", "3"]
+    else:
+        import ray._private.services as services
+
+        monkeypatch.delenv("RAY_ADDRESS", raising=False)
+        monkeypatch.setattr(services, "find_gcs_addresses", lambda: [])
+        monkeypatch.setattr(services, "find_bootstrap_address", lambda temp_dir: None)
+        argv += ["--address", "auto"]
+    code = main(argv)
+    printed = capsys.readouterr()
+    lines = printed.err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and not printed.out, (lines, printed.out)
+    assert lines[0].startswith(f"bitcomm train: error: {error}"), lines
+    assert not (tmp_path / "run").exists()
+    if case == "3 workers":  # the default runs on any machine
+        from bitcomm.learn.ray_backend import check_ray
+
+        monkeypatch.setattr(os, "cpu_count", lambda: 1)
+        check_ray(None, 2)
 
 
 @pytest.mark.parametrize(
@@ -362,6 +441,16 @@ def test_a_malformed_address_gets_one_line(address: Any, tmp_path: Path) -> None
     if address == "nohost:notaport":  # through the Python API, without starting Ray
         with pytest.raises(ConfigError, match=f"^invalid address='nohost:notaport': {allowed}$"):
             train(tiny_config(workers=1), tmp_path / "run", progress=False, address=address)
+
+
+def test_an_address_for_a_config_that_does_not_train_on_ray_gets_one_line(tmp_path: Path) -> None:
+    """As `--address` without `--backend ray` does: before, `train` trained locally and left the address unread."""
+    from bitcomm.errors import ConfigError
+    from bitcomm.learn.run import train
+
+    with pytest.raises(ConfigError, match=r"^invalid address='10.1.2.3:6379': only with backend='ray' \(this config"):
+        train(tiny_config(backend="local"), tmp_path / "run", progress=False, address="10.1.2.3:6379")
+    assert not (tmp_path / "run").exists()
 
 
 def test_an_address_check_passes_where_ray_or_another_grpc_server_answers_and_for_auto(

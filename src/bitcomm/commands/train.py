@@ -161,9 +161,9 @@ def run(args: argparse.Namespace) -> int:
     if args.eval_episodes:  # the final evaluation's, before training rather than after it
         check_eval(cfg.task, args.eval_episodes, cfg.model.messages == "onehot", "eval-episodes")
     if cfg.backend == "ray":  # `train` checks it too, after this line: a run refused must not name its folder
-        from bitcomm.learn.ray_backend import check_address
+        from bitcomm.learn.ray_backend import check_ray
 
-        check_address(args.address)
+        check_ray(args.address, cfg.workers)
     threads = use_threads(args)
     print(
         f"run folder: {out}{' (resumed)' if args.resume else ''}; torch threads: {threads or 'OMP_NUM_THREADS'}",

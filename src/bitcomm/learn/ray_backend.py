@@ -25,6 +25,7 @@ the next batch index; batches dropped for staleness or lost in flight were playe
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -59,7 +60,7 @@ from bitcomm.learn.run_folder import (
 )
 from bitcomm.policies.denormals import flush_denormals
 from bitcomm.policies.networks import PolicyNet
-from bitcomm.stop_signals import deaf_children
+from bitcomm.stop_signals import deaf_children, sigterm_interrupts
 
 ACTOR_PREFIX = "bitcomm-rollout"
 """Rollout actors are named `<prefix>-<run token>-<worker>.<generation>` (`ray.util.list_named_actors` lists them)."""
@@ -142,8 +143,39 @@ GRPC_HELLO = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0
 with a SETTINGS frame at once; a silent listener or an HTTP/1 server does not."""
 
 
+def import_ray() -> Any:
+    """The `ray` module; one line where it cannot be imported."""
+    try:
+        import ray
+    except ImportError:
+        raise bad_value("backend", "ray", "Ray is not installed (pip install 'bitcomm[ray]')") from None
+    return ray
+
+
+def private_cpus() -> int:
+    """The most rollout actors a private Ray instance (no `address`) takes: this machine's CPUs, and at least
+    `TrainConfig.workers`' default, so that the default runs anywhere."""
+    return max(os.cpu_count() or 1, TrainConfig.workers)
+
+
+def check_ray(address: str | None, workers: int) -> None:
+    """What `connect` would refuse, checked before the run folder is made, in one line: Ray not installed, an
+    address where no cluster answers (`check_address`), or more actors than a private instance takes
+    (`private_cpus`; a cluster's CPUs are known once connected). Starts nothing."""
+    ray = import_ray()
+    if address is None and not ray.is_initialized() and workers > (cpus := private_cpus()):
+        raise bad_value(
+            "workers",
+            workers,
+            f"at most this machine's CPUs ({cpus}) on the Ray instance started here: each rollout actor takes one "
+            "(more: a cluster's, with --address)",
+        )
+    check_address(address)
+
+
 def check_address(address: str | None, timeout: float = PROBE_S) -> None:
-    """One line, within about `timeout` seconds, unless `address` is None, `auto` or a `HOST:PORT` (or
+    """One line, within about `timeout` seconds, unless `address` is None, `auto` where Ray finds a cluster
+    (`RAY_ADDRESS`, else the last `ray start` on this machine) that answers, or a `HOST:PORT` (or
     `ray://HOST:PORT`) where a gRPC server answers (a TCP connection is enough with `RAY_USE_TLS`, whose
     handshake this does not make): Ray would wait for anything else for many minutes. Starts nothing, so a
     caller may check before it makes the run folder."""
@@ -151,9 +183,10 @@ def check_address(address: str | None, timeout: float = PROBE_S) -> None:
         return
     if not isinstance(address, str):
         raise bad_value("address", address, ADDRESS_FORMS)
-    if address.strip() == "auto":
+    found = _auto(address) if address.strip() == "auto" else address
+    if found is None:
         return
-    parts = host_port(address)
+    parts = host_port(found)
     if parts is None:
         raise bad_value("address", address, ADDRESS_FORMS)
     host, port = parts
@@ -177,6 +210,24 @@ def check_address(address: str | None, timeout: float = PROBE_S) -> None:
             "address", address, f"something listens there but does not answer as a Ray cluster (gRPC) does: {why}"
         )
     raise bad_value("address", address, f"cannot reach a Ray cluster there (nothing accepts a connection: {why})")
+
+
+def _auto(address: str) -> str | None:
+    """Where Ray's `auto` leads (a `HOST:PORT`, probed as a typed one), one line where it finds no cluster; None
+    where this Ray cannot say (its lookup is not public API)."""
+    try:
+        from ray._private.services import get_ray_address_from_environment
+    except ImportError:
+        return None
+    try:
+        found = get_ray_address_from_environment(address, None)
+    except ConnectionError:
+        raise bad_value(
+            "address", address, "no Ray cluster found (RAY_ADDRESS is not set and no `ray start` runs on this machine)"
+        ) from None
+    except Exception:  # noqa: BLE001 - Ray's own, which ray.init meets again and reports
+        return None
+    return found if isinstance(found, str) and host_port(found) is not None else None
 
 
 def _left(deadline: float) -> float:
@@ -219,39 +270,63 @@ def _candidates(host: str) -> Iterator[str]:
             yield node
 
 
-def connect(address: str | None, workers: int) -> bool:
+def connect(address: str | None, workers: int) -> tuple[bool, Any]:
     """Join the cluster at `address`, shipping this bitcomm package to its workers (Ray's `py_modules`: the
     nodes need its dependencies, not bitcomm); None: a Ray already started in this process, else a new local
     instance with a CPU per actor, whose servers (in the driver's process group) are deaf to the stop signals the
-    driver takes (`deaf_children`), so that the driver can save. Returns whether this call started Ray; one line if no
+    driver takes (`deaf_children`), so that the driver can save. Returns whether this call started Ray (and shuts
+    it down again if anything stops the call after) and the SIGTERM handler `ray.init` installed, which ends a run
+    unsaved (`sys.exit(15)`): the caller's is back in its place, before a stop signal held while the private
+    instance started is let through (one ended the driver with Ray's stack dump, SIGABRT); a SIGTERM meanwhile
+    raises `Stopped` (`sigterm_interrupts`), where nothing else takes it. One line if no
     cluster answers or it is too small (`bitcomm.learn.run.train` has checked the address with `check_address`
     before making the run folder)."""
+    with sigterm_interrupts():  # a SIGTERM while Ray starts stops the call, which shuts that Ray down
+        return _connect(address, workers)
+
+
+def _connect(address: str | None, workers: int) -> tuple[bool, Any]:
     import ray
 
     import bitcomm
 
+    before = rays = signal.getsignal(signal.SIGTERM)
     started = False
-    if not ray.is_initialized():
-        try:
-            if address is None:
-                cpus = max(workers, os.cpu_count() or 1)
-                with deaf_children():
-                    ray.init(
-                        "local", num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False
-                    )
-            else:
-                code = {"py_modules": [str(Path(bitcomm.__file__).parent)]}
-                ray.init(address, runtime_env=code, log_to_driver=False, configure_logging=False)
-        except (ConnectionError, RuntimeError, ValueError) as err:
-            reason = f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
-            raise bad_value("address", address, f"no Ray cluster answers there ({reason})") from None
-        started = True
-    cpus = ray.cluster_resources().get("CPU", 0)
-    if cpus < workers:
+    try:
+        if not ray.is_initialized():
+            try:
+                with deaf_children() if address is None else contextlib.nullcontext():
+                    try:
+                        if address is None:
+                            cpus = max(workers, os.cpu_count() or 1)
+                            ray.init(
+                                "local",
+                                num_cpus=cpus,
+                                include_dashboard=False,
+                                log_to_driver=False,
+                                configure_logging=False,
+                            )
+                        else:
+                            code = {"py_modules": [str(Path(bitcomm.__file__).parent)]}
+                            ray.init(address, runtime_env=code, log_to_driver=False, configure_logging=False)
+                    finally:
+                        started = ray.is_initialized()
+                        rays = signal.getsignal(signal.SIGTERM)
+                        _set_sigterm(before)
+            except (ConnectionError, RuntimeError, ValueError) as err:
+                reason = f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
+                raise bad_value("address", address, f"no Ray cluster answers there ({reason})") from None
+        cpus = ray.cluster_resources().get("CPU", 0)
+        if cpus < workers:
+            raise bad_value(
+                "workers", workers, f"at most the Ray cluster's CPUs ({cpus:g}): each rollout actor takes one"
+            )
+    except BaseException:
         if started:
+            _set_sigterm(rays)
             ray.shutdown()
-        raise bad_value("workers", workers, f"at most the Ray cluster's CPUs ({cpus:g}): each rollout actor takes one")
-    return started
+        raise
+    return started, rays
 
 
 def _cause(err: Exception) -> str:
@@ -321,17 +396,11 @@ def train_ray(
 ) -> Path:
     """Train on Ray until `cfg.episodes` episodes are consumed; the caller holds the run folder's lock
     (`bitcomm.learn.run.train`). Returns the latest checkpoint."""
-    try:
-        import ray
-    except ImportError:
-        raise bad_value("backend", cfg.backend, "Ray is not installed (pip install 'bitcomm[ray]')") from None
+    ray = import_ray()
     if cfg.backend != "ray":
         raise bad_value("backend", cfg.backend, "train_ray needs backend='ray'")
-    before = signal.getsignal(signal.SIGTERM)
-    started = connect(address, cfg.workers)
-    rays = signal.getsignal(signal.SIGTERM)
+    started, rays = connect(address, cfg.workers)  # `_train` stops the run saved, where `ray.init`'s handler did not
     try:
-        _set_sigterm(before)  # `ray.init`'s handler ends the run unsaved (`sys.exit(15)`): `_train` stops it saved
         return _train(cfg, out, resume, progress)
     finally:
         _set_sigterm(rays)

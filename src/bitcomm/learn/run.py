@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bitcomm.errors import ConfigError, check_instance
+from bitcomm.errors import ConfigError, bad_value, check_instance
 from bitcomm.learn.allocator import keep_freed_memory
 from bitcomm.learn.beside import critic_beside_policy
 from bitcomm.learn.config import TrainConfig
@@ -53,9 +53,11 @@ def train(
     keep_freed_memory()
     check_start(out, resume)
     if cfg.backend == "ray":
-        from bitcomm.learn.ray_backend import check_address
+        from bitcomm.learn.ray_backend import check_ray
 
-        check_address(address)  # before the folder is made: Ray itself waits minutes for a host that is not there
+        check_ray(address, cfg.workers)  # before the folder is made: Ray itself waits minutes for a host not there
+    elif address is not None:
+        raise bad_value("address", address, f"only with backend='ray' (this config's is {cfg.backend!r})")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
