@@ -426,6 +426,13 @@ def test_what_a_ray_run_would_be_refused_is_refused_in_one_line_before_its_folde
         check_ray(None, 2)
 
 
+def test_the_address_flags_help_names_the_forms_an_address_may_take(capsys: pytest.CaptureFixture[str]) -> None:
+    """The help said only "the Ray cluster to train on": the forms were learned from the refusal of a wrong one."""
+    assert main(["train", "--help"]) == 0
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "auto (RAY_ADDRESS, else the last `ray start` here), HOST:PORT or ray://HOST:PORT" in help_text
+
+
 @pytest.mark.parametrize(
     "address", ["nohost:notaport", "ray://", "host", ":6379", "host:0", "host:65536", "ray://a/b:6379", 6379]
 )

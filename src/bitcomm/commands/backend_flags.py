@@ -56,7 +56,8 @@ def add_backend_flags(parser: argparse.ArgumentParser) -> None:
         "--address",
         type=ray_address,
         default=None,
-        help="the Ray cluster to train on with --backend ray (default: a Ray instance started on this machine)",
+        help="the Ray cluster to train on with --backend ray: auto (RAY_ADDRESS, else the last `ray start` here), "
+        "HOST:PORT or ray://HOST:PORT (default: a Ray instance started on this machine)",
     )
 
 
