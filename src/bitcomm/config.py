@@ -125,7 +125,17 @@ def slot_table(recipients: np.ndarray) -> np.ndarray:
 MIN_DELAY = 1
 """A message sent at step t arrives at t + 1 at the earliest."""
 
-ARRIVE_WITHIN = "a message must arrive within an episode"
+
+def check_arrival(delay: int, steps: int, steps_name: str, why: str = "") -> None:
+    """One line unless a message sent at an episode's first step arrives within its `steps` (`steps_name`: max_steps,
+    or training's train_max_steps). Where `delay` is already `MIN_DELAY` the line names the steps, the value that can
+    change: `train --max-steps 1` was blamed on a default delay the user never typed; else it names `delay` (`why`
+    follows its line)."""
+    if delay < steps:
+        return
+    if delay == MIN_DELAY:
+        raise bad_value(steps_name, steps, f"must be > delay ({MIN_DELAY}): a message must arrive within an episode")
+    raise bad_value("delay", delay, f"must be < {steps_name} ({steps}){why}")
 
 
 @dataclass(frozen=True)
@@ -223,10 +233,7 @@ class TaskConfig:
     def __post_init__(self) -> None:
         check_instance("env", self.env, EnvConfig, "a bitcomm.EnvConfig, e.g. EnvConfig(size=4)")
         check_instance("channel", self.channel, ChannelConfig, "a bitcomm.ChannelConfig, e.g. ChannelConfig(bits=4)")
-        if self.channel.delay >= self.env.max_steps:
-            if self.channel.delay == MIN_DELAY:  # delay cannot be lowered: what is short is max_steps
-                raise bad_value("max_steps", self.env.max_steps, f"must be > delay ({MIN_DELAY}): {ARRIVE_WITHIN}")
-            raise bad_value("delay", self.channel.delay, f"must be < max_steps ({self.env.max_steps}): {ARRIVE_WITHIN}")
+        check_arrival(self.channel.delay, self.env.max_steps, "max_steps", ": a message must arrive within an episode")
         n = self.env.n_agents
         recipients = self.recipient_lists
         if len(recipients) != n:

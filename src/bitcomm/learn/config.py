@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from bitcomm.config import ARRIVE_WITHIN, MAX_EVAL_EPISODES, MIN_DELAY, TaskConfig, check_seed, plain_fields
+from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig, check_arrival, check_seed, plain_fields
 from bitcomm.errors import ConfigError, bad_value, check_instance, check_int, check_number, check_rate, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
@@ -316,11 +316,8 @@ class TrainConfig:
         check_marginal_bits(self.entropy_message_marginal, self.task.channel.bits)
         self._check_message_divergence()
         self._check_observed_head("message_logit_decay", "a word distribution per goal")
-        if 0 < self.train_max_steps <= self.task.channel.delay:
-            if self.task.channel.delay == MIN_DELAY:  # delay cannot be lowered: what is short is train_max_steps
-                short = f"must be > delay ({MIN_DELAY}): {ARRIVE_WITHIN}"
-                raise bad_value("train_max_steps", self.train_max_steps, short)
-            raise bad_value("delay", self.task.channel.delay, f"must be < train_max_steps ({self.train_max_steps})")
+        if self.train_max_steps > 0:  # 0: the task's max_steps, checked by TaskConfig
+            check_arrival(self.task.channel.delay, self.train_max_steps, "train_max_steps")
         if 0 < self.train_max_steps <= self.task.env.act_delay:  # else training_task's EnvConfig blames max_steps
             raise bad_value("act_delay", self.task.env.act_delay, f"must be < train_max_steps ({self.train_max_steps})")
         relaxed = self.goal_coef > 0 and not self.model.message_map
