@@ -266,7 +266,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
     done: set[int] = set()
     died: dict[int, int] = {}  # worker -> exit code, of the workers killed (not one that reported an error)
     heard: set[int] = set()  # the workers that sent a batch
-    ready: set[int] = set()  # the workers started (their `Learner` built), before their first batch
+    started = False  # a worker has started (its `Learner` built): the run's seconds of training count from then
     with stop_after_batch() as stop_asked:  # till the workers are gone: a signal meanwhile is a request
         try:
             with deaf_children():  # till `ignore_stop_signals`: killed mid-batch, a worker could hold the lock
@@ -295,9 +295,8 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                     done.add(msg[1])
                     continue
                 if msg[0] == "ready":
-                    if not ready:  # a process spawned and its imports are not training: a resume would add them
-                        t_start = time.perf_counter()
-                    ready.add(msg[1])
+                    if not started:  # a process spawned and its imports are not training: a resume would add them
+                        t_start, started = time.perf_counter(), True
                     continue
                 _, w, length, team_return, success, sent_greedy, stats = msg
                 heard.add(w)
