@@ -33,6 +33,11 @@ MAX_JOBS = 1024
 Integer: TypeAlias = int | np.integer
 """A Python or a numpy integer (`rng.integers()` gives one): what a seed or an episode count takes (`check_seed`)."""
 
+Seed: TypeAlias = Integer | np.random.SeedSequence | None
+"""What a deployed policy's sampling stream takes (`Controller`, `EnvController`, `OnnxController`): an integer
+(Python's or numpy's), a `SeedSequence` (one spawned per robot, say), or None for fresh entropy from the OS (two robots
+loaded with one int draw the same numbers)."""
+
 
 def check_seed(value: object) -> int:
     """`value` as a Python int, or one error line unless it is a seed every stream takes (an integer in [0,

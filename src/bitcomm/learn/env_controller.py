@@ -25,13 +25,13 @@ import numpy as np
 import torch
 from pettingzoo import ParallelEnv
 
-from bitcomm.config import check_bool
+from bitcomm.config import Seed, check_bool
 from bitcomm.envs.vector import EnvLayout, agent_rows, check_finite, joint_action
 from bitcomm.errors import bad_value
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_eval import load_env_policy
 from bitcomm.learn.env_rollout import env_factory
-from bitcomm.policies.controller import Seed, sampling_generator, seeded_generator
+from bitcomm.policies.controller import sampling_generator, seeded_generator
 from bitcomm.policies.mlp import MlpPolicy
 
 KEYS = ("observation", "messages")

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from bitcomm.checkpoint import load_grid_weights
-from bitcomm.config import Integer, TaskConfig, check_bool, check_seed
+from bitcomm.config import Seed, TaskConfig, check_bool, check_seed
 from bitcomm.errors import ConfigError, check_instance, one_line
 from bitcomm.policies.agent import act
 from bitcomm.policies.agent_policies import agent_batch
@@ -32,12 +32,6 @@ def model_from_dict(d: dict[str, Any]) -> ModelConfig:
     if "conv_channels" in values:
         values["conv_channels"] = tuple(values["conv_channels"])
     return ModelConfig(**values)
-
-
-Seed = Integer | np.random.SeedSequence | None
-"""What a deployed policy's sampling stream takes, as `OnnxController`'s: an integer (Python's or numpy's), a
-`SeedSequence` (one spawned per robot, say), or None for fresh entropy from the OS (two robots loaded with one int
-draw the same numbers)."""
 
 
 def seeded_generator(seed: Seed) -> torch.Generator:

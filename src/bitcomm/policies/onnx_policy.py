@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from bitcomm.channel.core import index_to_bits
-from bitcomm.config import MAX_JOBS, Integer, TaskConfig, check_bool, check_seed
+from bitcomm.config import MAX_JOBS, Seed, TaskConfig, check_bool, check_seed
 from bitcomm.envs.core import N_MOVES
 from bitcomm.errors import ConfigError, bad_value, is_integer
 from bitcomm.policies.agent_policies import agent_batch
@@ -109,9 +109,7 @@ def card_shapes(metadata: dict[str, Any]) -> list[list[int]]:
 class OnnxController:
     """An exported policy network in an onnxruntime session, acting for any agent of its task."""
 
-    def __init__(
-        self, session: Any, metadata: dict[str, Any], seed: Integer | np.random.SeedSequence | None = 0
-    ) -> None:
+    def __init__(self, session: Any, metadata: dict[str, Any], seed: Seed = 0) -> None:
         self.session = session
         self.metadata = metadata
         """The policy card written by `bitcomm export` (also in the `.json` sidecar)."""
@@ -122,9 +120,7 @@ class OnnxController:
         self.rng = np.random.default_rng(seed)
 
     @classmethod
-    def load(
-        cls, path: str | Path, seed: Integer | np.random.SeedSequence | None = 0, threads: int = 1
-    ) -> OnnxController:
+    def load(cls, path: str | Path, seed: Seed = 0, threads: int = 1) -> OnnxController:
         """From a `.onnx` file written by `bitcomm export`; `seed` drives sampling, `threads` onnxruntime."""
         if not is_integer(threads) or not 1 <= threads <= MAX_JOBS:  # type: ignore[operator]
             # onnxruntime refused "2" or 2.5 in a TypeError, and a billion in a MemoryError read as a bad file
