@@ -77,6 +77,7 @@ ALLOWED: dict[tuple[str, str], set[str]] = {
     (ALL, "--move-decay-below"): {"0", "1e300"},  # 0: the decay from the first episode; huge: from the second batch
     (ALL, "--senders-wait-below"): {"0", "1e300"},  # 0: the senders at their `_from`; huge: from the second batch
     (ALL, "--greedy-senders"): {"0"},  # 0: off
+    (ALL, "--critic-epochs"): {"0"},  # 0: the critics step in every epoch
     (ALL, "--greedy-senders-from"): {"0"},  # 0: from the first batch (the default recipe's greedy senders)
     (ALL, "--held-messages"): {"0"},  # 0: off
     (ALL, "--held-messages-from"): {"0"},  # 0: from the first batch
@@ -126,6 +127,7 @@ KNOWN: list[tuple[list[str], str]] = [
     (["train", "--hidden", "-8"], "hidden"),
     (["train", "--hidden", "100000000"], "hidden"),
     (["train", "--epochs", "100000000"], "epochs"),
+    (["train", "--critic-epochs", "5"], "critic-epochs"),  # more passes of the critics than the recipe's 4 epochs
     (["train", "--lr", "inf"], "lr"),
     (["train", "--checkpoint-seconds", "-1"], "checkpoint-seconds"),
     (["train", "--checkpoint-seconds", "nan"], "checkpoint-seconds"),

@@ -48,6 +48,14 @@ def check_seed(value: object) -> int:
     return int(value)  # type: ignore[call-overload]
 
 
+def critic_passes(critic_epochs: object, epochs: int) -> int:
+    """The passes the critics make over a batch, the first of the policy's `epochs` (`critic_epochs` 0: all of
+    them), or one error line unless `critic_epochs` is an integer in [0, epochs]."""
+    if not is_integer(critic_epochs) or not 0 <= critic_epochs <= epochs:  # type: ignore[operator]
+        raise bad_value("critic-epochs", critic_epochs, f"must be an integer in [0, epochs ({epochs})]; 0: every epoch")
+    return int(critic_epochs) or epochs  # type: ignore[call-overload]
+
+
 def check_evaluation(episodes: object, seed: object) -> tuple[int, int]:
     """`(episodes, seed)` as Python ints, or one error line unless an evaluation can play `episodes` (an integer >= 1;
     0 was an IndexError from an empty batch) seeded by `seed` (`check_seed`)."""

@@ -24,7 +24,8 @@ RENAMED = {"entropy_move": "entropy_action"}
 """Learning flags whose field has another name in `EnvTrainConfig` (the env's own actions are not moves)."""
 SUPPORTED = {
     "num_envs", "lr", "critic_lr", "gamma", "entropy_move", "entropy_message", "entropy_message_marginal",
-    "max_grad_norm", "epochs", "minibatches", "clip", "adv_norm", "checkpoint_seconds", "keep_checkpoints", "hidden",
+    "max_grad_norm", "epochs", "critic_epochs", "minibatches", "clip", "adv_norm", "checkpoint_seconds",
+    "keep_checkpoints", "hidden",
 }  # fmt: skip
 """The learning flags that mean something with --env."""
 

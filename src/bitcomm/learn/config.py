@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig, check_arrival, check_seed, plain_fields
+from bitcomm.config import MAX_EVAL_EPISODES, TaskConfig, check_arrival, check_seed, critic_passes, plain_fields
 from bitcomm.errors import ConfigError, bad_value, check_instance, check_int, check_number, check_rate, is_number
 from bitcomm.learn.estimators import ESTIMATORS
 from bitcomm.learn.precision import UPDATE_DTYPES
@@ -91,6 +91,10 @@ class TrainConfig:
     max_grad_norm: float = 1.0
     epochs: int = 1
     """Passes over each batch (PPO-style reuse when > 1)."""
+    critic_epochs: int = 0
+    """Passes of the critics over each batch, in the first of the `epochs` (0: every epoch). Fewer buy throughput
+    where the critics' step cannot run beside the policy's (one thread, an A3C worker): it is about a third of an
+    update (docs/tuning.md, session 64)."""
     minibatches: int = 1
     """Minibatches per pass, split by whole episodes."""
     clip: float = 0.0
@@ -297,6 +301,7 @@ class TrainConfig:
             check_int(name, getattr(self, name), 1)
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
+        critic_passes(self.critic_epochs, self.epochs)
         for name in ("lr", "critic_lr", "map_lr"):
             check_rate(name, getattr(self, name))
         self._check_idle_options()

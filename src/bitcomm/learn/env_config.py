@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bitcomm.channel.topology import Edge
-from bitcomm.config import check_seed, plain_fields
+from bitcomm.config import check_seed, critic_passes, plain_fields
 from bitcomm.envs.subproc_vector import check_workers
 from bitcomm.errors import bad_value, check_int, check_number, check_rate, is_number
 from bitcomm.learn.estimators import ESTIMATORS
@@ -72,6 +72,9 @@ class EnvTrainConfig:
     critic_lr: float = 1e-3
     gamma: float = 0.95
     epochs: int = 4
+    critic_epochs: int = 0
+    """Passes of the critic over each batch, in the first of the `epochs` (0: every epoch), as the grid's
+    `TrainConfig.critic_epochs`."""
     minibatches: int = 4
     clip: float = 0.2
     """PPO ratio clipping for the reused batch; 0: the plain policy gradient."""
@@ -104,6 +107,7 @@ class EnvTrainConfig:
         check_workers(self.env_workers, self.num_envs, 0)
         if self.minibatches > self.num_envs:
             raise bad_value("minibatches", self.minibatches, f"at most num_envs ({self.num_envs})")
+        critic_passes(self.critic_epochs, self.epochs)
         for name in ("lr", "critic_lr"):
             check_rate(name, getattr(self, name))
         check_number("max_grad_norm", self.max_grad_norm, 0.0, strict=True)

@@ -25,7 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
-from bitcomm.config import slot_table
+from bitcomm.config import critic_passes, slot_table
 from bitcomm.envs.vector import EnvLayout
 from bitcomm.learn.beside import start
 from bitcomm.learn.env_config import EnvTrainConfig
@@ -171,13 +171,19 @@ class EnvLearner:
         adv = self.advantages(ro)
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
-        for _ in range(cfg.epochs):
+        critic_epochs = critic_passes(cfg.critic_epochs, cfg.epochs)
+        for epoch in range(cfg.epochs):
             order = torch.randperm(B, generator=generator) if cfg.minibatches > 1 else torch.arange(B)
             for cols in order.chunk(cfg.minibatches):
-                critic_loss = start(self.helper, functools.partial(self._critic_step, ro, adv, cols))
+                critic_loss = (
+                    start(self.helper, functools.partial(self._critic_step, ro, adv, cols))
+                    if epoch < critic_epochs
+                    else None
+                )
                 loss, step_stats = self.policy_loss(ro, adv, cols)
                 _step(self.opt_policy, self.policy, loss, cfg.max_grad_norm)
-                step_stats["losses/value"] = critic_loss()
+                if critic_loss is not None:
+                    step_stats["losses/value"] = critic_loss()
                 for k, v in step_stats.items():
                     stats.setdefault(k, []).append(v)
         return {k: float(np.mean(v)) for k, v in stats.items()}

@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from bitcomm.config import critic_passes
 from bitcomm.learn.beside import start
 from bitcomm.learn.codebook import CodeBook
 from bitcomm.learn.config import TrainConfig
@@ -260,10 +261,11 @@ class Learner:
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
         clip_scales: list[float] | None = None  # measured on the update's first step, then reused
-        for _ in range(cfg.epochs):
+        critic_epochs = critic_passes(cfg.critic_epochs, cfg.epochs)
+        for epoch in range(cfg.epochs):
             order = torch.randperm(B, generator=generator) if cfg.minibatches > 1 else torch.arange(B)
             for cols in order.chunk(cfg.minibatches):
-                step_stats, clip_scales = self._step(ro, adv, cols, clip_scales, features)
+                step_stats, clip_scales = self._step(ro, adv, cols, clip_scales, features, epoch < critic_epochs)
                 for k, v in step_stats.items():
                     stats.setdefault(k, []).append(v)
         if cfg.move_decay_below:
@@ -345,9 +347,10 @@ class Learner:
         cols: torch.Tensor,
         clip_scales: list[float] | None,
         features: BatchFeatures | None = None,
+        with_critic: bool = True,
     ) -> tuple[dict[str, float], list[float]]:
-        """One gradient step of policy and critic on the whole episodes in columns `cols`; returns the
-        figures for the log and the policy losses' clip factors (see `_clipped_step`)."""
+        """One gradient step of the policy, and of the critic `with_critic`, on the whole episodes in columns `cols`;
+        returns the figures for the log and the policy losses' clip factors (see `_clipped_step`)."""
         fw = self._forward(ro, cols, features)
 
         def critic_step() -> float:  # regress on Q_t for every query the critic answers
@@ -355,11 +358,12 @@ class Learner:
             self._clipped_step(self.opt_critic, list(self.critic.parameters()), [v_loss], None)
             return v_loss.item()
 
-        critic_loss = start(self.helper, critic_step)  # beside the policy's step where a helper thread is given
+        critic_loss = start(self.helper, critic_step) if with_critic else None  # beside the policy's step
         # policy: the recipe's terms, summed per clip group (reinforcement, then each auxiliary term)
         losses, out = clip_groups(self.terms, self._batch(ro, fw, adv))
         clip_scales = self._clipped_step(self.opt_policy, list(self.policy.parameters()), losses, clip_scales)
-        out["losses/value"] = critic_loss()
+        if critic_loss is not None:
+            out["losses/value"] = critic_loss()
         return out, clip_scales
 
     def _clipped_step(
