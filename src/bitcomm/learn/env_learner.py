@@ -25,13 +25,13 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
-from bitcomm.config import critic_passes, slot_table
+from bitcomm.config import slot_table
 from bitcomm.envs.vector import EnvLayout
 from bitcomm.learn.beside import start
 from bitcomm.learn.env_config import EnvTrainConfig
 from bitcomm.learn.env_rollout import EnvRollout
 from bitcomm.learn.estimators import Advantages, EstimatorBatch, get_estimator, policy_gradient_loss
-from bitcomm.learn.learner import scaled
+from bitcomm.learn.learner import minibatch_steps, scaled
 from bitcomm.learn.objectives import clipped_policy_loss, critic_mse
 from bitcomm.policies.heads import marginal_entropy
 from bitcomm.policies.mlp import MlpCritic, MlpPolicy
@@ -171,21 +171,15 @@ class EnvLearner:
         adv = self.advantages(ro)
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
-        critic_epochs = critic_passes(cfg.critic_epochs, cfg.epochs)
-        for epoch in range(cfg.epochs):
-            order = torch.randperm(B, generator=generator) if cfg.minibatches > 1 else torch.arange(B)
-            for cols in order.chunk(cfg.minibatches):
-                critic_loss = (
-                    start(self.helper, functools.partial(self._critic_step, ro, adv, cols))
-                    if epoch < critic_epochs
-                    else None
-                )
-                loss, step_stats = self.policy_loss(ro, adv, cols)
-                _step(self.opt_policy, self.policy, loss, cfg.max_grad_norm)
-                if critic_loss is not None:
-                    step_stats["losses/value"] = critic_loss()
-                for k, v in step_stats.items():
-                    stats.setdefault(k, []).append(v)
+        for cols, with_critic in minibatch_steps(B, cfg.epochs, cfg.minibatches, cfg.critic_epochs, generator):
+            critic_step = functools.partial(self._critic_step, ro, adv, cols)
+            critic_loss = start(self.helper, critic_step) if with_critic else None  # beside the policy's step
+            loss, step_stats = self.policy_loss(ro, adv, cols)
+            _step(self.opt_policy, self.policy, loss, cfg.max_grad_norm)
+            if critic_loss is not None:
+                step_stats["losses/value"] = critic_loss()
+            for k, v in step_stats.items():
+                stats.setdefault(k, []).append(v)
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
 

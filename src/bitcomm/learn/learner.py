@@ -12,7 +12,7 @@ The learner speaks the rollout's tensors (`bitcomm.learn.rollout.Rollout`); the 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -261,13 +261,10 @@ class Learner:
         B = ro.valid.shape[1]
         stats: dict[str, list[float]] = {}
         clip_scales: list[float] | None = None  # measured on the update's first step, then reused
-        critic_epochs = critic_passes(cfg.critic_epochs, cfg.epochs)
-        for epoch in range(cfg.epochs):
-            order = torch.randperm(B, generator=generator) if cfg.minibatches > 1 else torch.arange(B)
-            for cols in order.chunk(cfg.minibatches):
-                step_stats, clip_scales = self._step(ro, adv, cols, clip_scales, features, epoch < critic_epochs)
-                for k, v in step_stats.items():
-                    stats.setdefault(k, []).append(v)
+        for cols, with_critic in minibatch_steps(B, cfg.epochs, cfg.minibatches, cfg.critic_epochs, generator):
+            step_stats, clip_scales = self._step(ro, adv, cols, clip_scales, features, with_critic)
+            for k, v in step_stats.items():
+                stats.setdefault(k, []).append(v)
         if cfg.move_decay_below:
             stats["schedule/move_scale"] = [self.move_scale]
         for k, v in self.senders_wait.figures().items():  # (the a3c trainer logs its main process's watch instead)
@@ -395,6 +392,20 @@ class Learner:
             p.grad = g
         opt.step()
         return scales
+
+
+def minibatch_steps(
+    episodes: int, epochs: int, minibatches: int, critic_epochs: int, generator: torch.Generator | None
+) -> Iterator[tuple[torch.Tensor, bool]]:
+    """The columns of each gradient step of an update over a batch of `episodes`, `epochs` passes of `minibatches`
+    whole-episode minibatches (shuffled by `generator` where there are several), and whether the critics step with it:
+    in the first `critic_epochs` passes only (0: every pass, `critic_passes`). The grid's and the wrapped env's
+    learners step alike."""
+    critic = critic_passes(critic_epochs, epochs)
+    for epoch in range(epochs):
+        order = torch.randperm(episodes, generator=generator) if minibatches > 1 else torch.arange(episodes)
+        for cols in order.chunk(minibatches):
+            yield cols, epoch < critic
 
 
 CHUNK_ELEMENTS = 1 << 18
