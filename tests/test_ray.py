@@ -356,13 +356,14 @@ def test_an_address_where_nothing_listens_gets_one_line_quickly(
     scheme: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Ray itself retried such an address for many minutes ("Failed to connect to GCS ... within 5 seconds"
-    every ~40 s): the run stops at once, with one line, before Ray is asked (even with a Ray started here).
+    every ~40 s): the run stops at once, with one line, before Ray is asked.
     `auto` is checked where Ray finds it (`RAY_ADDRESS` here): before, it made the run folder and then waited."""
 
     def no_init(*args: Any, **kwargs: Any) -> None:
         raise AssertionError("ray.init was called")
 
     monkeypatch.setattr(ray, "init", no_init)
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)  # as a command's process, not this module's
     address = f"{scheme}127.0.0.1:{closed_port()}"
     if scheme == "auto":
         monkeypatch.setenv("RAY_ADDRESS", address[4:])
@@ -424,6 +425,60 @@ def test_what_a_ray_run_would_be_refused_is_refused_in_one_line_before_its_folde
 
         monkeypatch.setattr(os, "cpu_count", lambda: 1)
         check_ray(None, 2)
+
+
+def test_an_address_of_another_cluster_than_the_one_this_process_is_connected_to_gets_one_line(
+    cluster: str, tmp_path: Path
+) -> None:
+    """A notebook's `ray.init`, then `train(cfg, out, address=...)`: the run trained on the Ray it was connected to,
+    whatever cluster the address named. Now an address of another cluster is refused before the run folder is made;
+    the connected cluster's own (as Ray gives it or through loopback), `auto` and None train there."""
+    from bitcomm.errors import ConfigError
+    from bitcomm.learn.ray_backend import check_ray
+    from bitcomm.learn.run import train
+
+    port = cluster.rsplit(":", 1)[1]
+    for other in ("198.51.100.7:6379", f"127.0.0.1:{closed_port()}", "ray://198.51.100.7:10001"):
+        with pytest.raises(ConfigError) as err:
+            train(tiny_config(), tmp_path / "run", progress=False, address=other)
+        assert str(err.value) == (
+            f"invalid address={other!r}: Ray is already connected in this process, to the cluster at {cluster}: "
+            "train there without an address (or with auto), or call ray.shutdown() first"
+        )
+    assert not (tmp_path / "run").exists()
+    for same in (cluster, f"127.0.0.1:{port}", f"localhost:{port}", "auto", None):
+        check_ray(same, 2)
+
+
+def test_a_ray_run_checks_what_it_would_be_refused_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`bitcomm train` checked a Ray run (probing its address, up to `PROBE_S`) before it printed the run folder's
+    name, and `train` checked it again: two probes a run. The command and `train` check it once each."""
+    from bitcomm.learn import ray_backend
+    from bitcomm.learn.run import train
+
+    checked: list[tuple[str | None, int]] = []
+    monkeypatch.setattr(ray_backend, "check_ray", lambda address, workers: checked.append((address, workers)))
+    monkeypatch.setattr(ray_backend, "train_ray", lambda cfg, out, **kwargs: out / "checkpoint")
+    address = "198.51.100.7:6379"
+    argv = ["train", *TINY, "--episodes", "16", "--backend", "ray", "--workers", "1", "--address", address]
+    assert main([*argv, "--out", str(tmp_path / "command")]) == 0
+    assert checked == [(address, 1)]
+    train(tiny_config(workers=1), tmp_path / "api", progress=False, address=address)
+    assert checked == [(address, 1)] * 2
+
+
+def test_a_private_instance_s_run_prints_no_notice_of_ray_s_token(tmp_path: Path) -> None:
+    """Ray 2.5x says at every `ray.init` that starts an instance "Token authentication is enabled for this Ray
+    cluster. Set RAY_AUTH_MODE=disabled to opt out...": a line on every run's stderr about an instance only the run
+    uses. It is left out; the instance keeps its token."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}  # its own instance, not the module's
+    argv = ["train", *TINY, "--episodes", "16", "--backend", "ray", "--workers", "1", "--threads", "1"]
+    done = subprocess.run(
+        [sys.executable, "-m", "bitcomm.cli", *argv, "--out", str(tmp_path / "run")],
+        env={**env, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=STARTUP_S,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "Token authentication" not in done.stderr + done.stdout, done.stderr
 
 
 def test_the_address_flags_help_names_the_forms_an_address_may_take(capsys: pytest.CaptureFixture[str]) -> None:
@@ -538,6 +593,7 @@ def test_an_address_where_a_web_server_answers_gets_one_line_quickly(
         raise AssertionError("ray.init was called")
 
     monkeypatch.setattr(ray, "init", no_init)
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)  # as a command's process, not this module's
     out = tmp_path / "run"
     argv = ["train", *TINY, "--episodes", "128", "--backend", "ray", "--workers", "1", "--threads", "1"]
     with listener(b"HTTP/1.1 400 Bad Request\r\n\r\n") as port:

@@ -135,7 +135,7 @@ def resumed_config(args: argparse.Namespace, out: Path) -> TrainConfig:
 
 def run(args: argparse.Namespace) -> int:
     from bitcomm.learn.config import make_train_config
-    from bitcomm.learn.run import train
+    from bitcomm.learn.run import check_run, train_checked
     from bitcomm.learn.run_folder import check_start
 
     if args.env is not None or (args.resume and env_train.is_env_run(args.out)):
@@ -160,16 +160,13 @@ def run(args: argparse.Namespace) -> int:
     check_train(cfg)
     if args.eval_episodes:  # the final evaluation's, before training rather than after it
         check_eval(cfg.task, args.eval_episodes, cfg.model.messages == "onehot", "eval-episodes")
-    if cfg.backend == "ray":  # `train` checks it too, after this line: a run refused must not name its folder
-        from bitcomm.learn.ray_backend import check_ray
-
-        check_ray(args.address, cfg.workers)
+    out = check_run(cfg, out, args.resume, args.address)  # before this line: a run refused must not name its folder
     threads = use_threads(args)
     print(
         f"run folder: {out}{' (resumed)' if args.resume else ''}; torch threads: {threads or 'OMP_NUM_THREADS'}",
         flush=True,
     )
-    checkpoint = train(cfg, out, resume=args.resume, progress=not args.quiet, address=args.address)
+    checkpoint = train_checked(cfg, out, args.resume, not args.quiet, args.address)
     print(f"checkpoint: {checkpoint}")
     if args.eval_episodes:
         from bitcomm.commands.common import print_result

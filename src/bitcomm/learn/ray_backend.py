@@ -26,6 +26,7 @@ the next batch index; batches dropped for staleness or lost in flight were playe
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
 import re
@@ -160,10 +161,14 @@ def private_cpus() -> int:
 
 def check_ray(address: str | None, workers: int) -> None:
     """What `connect` would refuse, checked before the run folder is made, in one line: Ray not installed, an
-    address where no cluster answers (`check_address`), or more actors than a private instance takes
-    (`private_cpus`; a cluster's CPUs are known once connected). Starts nothing."""
+    address where no cluster answers (`check_address`) or that names another cluster than the one this process is
+    connected to (`check_connected`), or more actors than a private instance takes (`private_cpus`; a cluster's CPUs
+    are known once connected). Starts nothing."""
     ray = import_ray()
-    if address is None and not ray.is_initialized() and workers > (cpus := private_cpus()):
+    if ray.is_initialized():
+        check_connected(ray, address)
+        return
+    if address is None and workers > (cpus := private_cpus()):
         raise bad_value(
             "workers",
             workers,
@@ -171,6 +176,57 @@ def check_ray(address: str | None, workers: int) -> None:
             "(more: a cluster's, with --address)",
         )
     check_address(address)
+
+
+def check_connected(ray: Any, address: str | None) -> None:
+    """One line where Ray is connected in this process (a notebook's `ray.init`) and `address` names another
+    cluster: `connect` trains on the connected one, and the address would be silently ignored. None and `auto` take
+    the connected cluster; `HOST:PORT` must be its GCS (`_same_cluster`)."""
+    if address is None or (parts := _parsed(address)) is None:
+        return
+    connected = ray.get_runtime_context().gcs_address
+    if not _same_cluster(address, parts, connected):
+        raise bad_value(
+            "address",
+            address,
+            f"Ray is already connected in this process, to the cluster at {connected}: train there without an "
+            "address (or with auto), or call ray.shutdown() first",
+        )
+
+
+def _same_cluster(address: str, parts: tuple[str, int], connected: str) -> bool:
+    """Whether `address` (`parts`: its host and port) names the cluster whose GCS is at `connected`: the same port on
+    the same machine; a `ray://` one is a Ray Client server's, on the head beside the GCS, so the machine alone."""
+    gcs = host_port(connected)
+    if gcs is None:  # an address Ray gives in a form this does not read: nothing to compare
+        return True
+    host, port = parts
+    same_port = address.strip().startswith("ray://") or port == gcs[1]
+    return same_port and not _machine(host).isdisjoint(_machine(gcs[0]))
+
+
+def _machine(host: str) -> set[str]:
+    """The IP addresses `host` stands for, this node's for a loopback one (`_candidates`); the name itself where it
+    does not resolve."""
+    ips: set[str] = set()
+    for candidate in _candidates(host):
+        try:
+            ips |= {str(info[4][0]) for info in socket.getaddrinfo(candidate, None)}
+        except OSError:
+            ips.add(candidate)
+    return ips
+
+
+def _parsed(address: object) -> tuple[str, int] | None:
+    """`address`'s host and port, None for `auto`; one line for anything that is not an address."""
+    if not isinstance(address, str):
+        raise bad_value("address", address, ADDRESS_FORMS)
+    if address.strip() == "auto":
+        return None
+    parts = host_port(address)
+    if parts is None:
+        raise bad_value("address", address, ADDRESS_FORMS)
+    return parts
 
 
 def check_address(address: str | None, timeout: float = PROBE_S) -> None:
@@ -181,14 +237,11 @@ def check_address(address: str | None, timeout: float = PROBE_S) -> None:
     caller may check before it makes the run folder."""
     if address is None:
         return
-    if not isinstance(address, str):
-        raise bad_value("address", address, ADDRESS_FORMS)
-    found = _auto(address) if address.strip() == "auto" else address
-    if found is None:
-        return
-    parts = host_port(found)
+    parts = _parsed(address)
+    if parts is None and (found := _auto(address)) is not None:
+        parts = host_port(found)
     if parts is None:
-        raise bad_value("address", address, ADDRESS_FORMS)
+        return
     host, port = parts
     tls = os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true")
     deadline = time.monotonic() + timeout
@@ -270,6 +323,25 @@ def _candidates(host: str) -> Iterator[str]:
             yield node
 
 
+TOKEN_NOTICE = "ray._private.authentication.authentication_token_setup"
+"""The logger where Ray (2.5x) says, at every `ray.init` that starts an instance, that it turned token
+authentication on ("Token authentication is enabled for this Ray cluster. Set RAY_AUTH_MODE=disabled to opt
+out..."): a notice on every run's stderr about an instance only the run uses, not a fault."""
+
+
+@contextlib.contextmanager
+def no_token_notice() -> Iterator[None]:
+    """Ray's notice that a private instance has token authentication (`TOKEN_NOTICE`) left out while it starts;
+    that logger's errors still show, and the instance keeps its token."""
+    logger = logging.getLogger(TOKEN_NOTICE)
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def connect(address: str | None, workers: int) -> tuple[bool, Any]:
     """Join the cluster at `address`, shipping this bitcomm package to its workers (Ray's `py_modules`: the
     nodes need its dependencies, not bitcomm); None: a Ray already started in this process, else a new local
@@ -299,13 +371,14 @@ def _connect(address: str | None, workers: int) -> tuple[bool, Any]:
                     try:
                         if address is None:
                             cpus = max(workers, os.cpu_count() or 1)
-                            ray.init(
-                                "local",
-                                num_cpus=cpus,
-                                include_dashboard=False,
-                                log_to_driver=False,
-                                configure_logging=False,
-                            )
+                            with no_token_notice():
+                                ray.init(
+                                    "local",
+                                    num_cpus=cpus,
+                                    include_dashboard=False,
+                                    log_to_driver=False,
+                                    configure_logging=False,
+                                )
                         else:
                             code = {"py_modules": [str(Path(bitcomm.__file__).parent)]}
                             ray.init(address, runtime_env=code, log_to_driver=False, configure_logging=False)

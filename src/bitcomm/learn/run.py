@@ -48,9 +48,14 @@ def train(
 ) -> Path:
     """Train in `cfg.mode` (or on Ray, at the cluster `address`) until `cfg.episodes` episodes are played;
     returns the latest checkpoint."""
+    return train_checked(cfg, check_run(cfg, out, resume, address), resume, progress, address)
+
+
+def check_run(cfg: TrainConfig, out: str | Path, resume: bool = False, address: str | None = None) -> Path:
+    """What `train` refuses, in one line, before it makes the run folder; returns the folder. `bitcomm train` calls
+    it before it prints the folder's name, then `train_checked`, so that a Ray address is probed once a run."""
     check_instance("cfg", cfg, TrainConfig, "a TrainConfig, e.g. bitcomm.learn.config.make_train_config()")
     out = run_folder(out)
-    keep_freed_memory()
     check_start(out, resume)
     if cfg.backend == "ray":
         from bitcomm.learn.ray_backend import check_ray
@@ -58,6 +63,12 @@ def train(
         check_ray(address, cfg.workers)  # before the folder is made: Ray itself waits minutes for a host not there
     elif address is not None:
         raise bad_value("address", address, f"only with backend='ray' (this config's is {cfg.backend!r})")
+    return out
+
+
+def train_checked(cfg: TrainConfig, out: Path, resume: bool, progress: bool, address: str | None) -> Path:
+    """`train` once `check_run` has passed."""
+    keep_freed_memory()
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
