@@ -108,6 +108,7 @@ SPACES = {
     "dict": spaces.Dict(cell=spaces.Discrete(2), near=spaces.Box(-1, 1, (2,), np.float32)),
     "box 2x2": spaces.Box(-1, 1, (2, 2), np.float64),
     "sequence": spaces.Sequence(spaces.Discrete(2)),
+    "text": spaces.Text(5, charset="abc"),
     "multidiscrete 100x100": spaces.MultiDiscrete([100, 100]),
     "multibinary 12": spaces.MultiBinary(12),  # 4096 combinations, the most learning takes
 }
@@ -163,6 +164,21 @@ class MixedActionsEnv(SignalEnv):
     def __init__(self) -> None:
         super().__init__()
         self._act = {"speaker": spaces.Discrete(1), "listener": spaces.Box(-1, 1, (2,), np.float32)}
+
+
+class ReviveEnv(SignalEnv):
+    """SignalEnv of 4 steps whose speaker terminates at each step it plays and is listed again two steps later (an
+    agent that respawns): it plays steps 0 and 2."""
+
+    def __init__(self) -> None:
+        super().__init__(steps=4, speaker_leaves=True)
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        obs, rewards, term, trunc, info = super().step(actions)
+        if self.t == 2:
+            self.agents.append("speaker")
+            obs["speaker"] = self._observe()["speaker"]
+        return obs, rewards, term, trunc, info
 
 
 class NobodyEnv(SignalEnv):
@@ -299,6 +315,20 @@ def test_an_agent_that_joins_as_the_others_leave_plays_on() -> None:
     assert ro.done[-1].all() and not ro.done[:-1].any()
 
 
+def test_an_agent_listed_again_after_it_left_plays_again() -> None:
+    """PettingZoo lets an env list an agent again after it terminated (one that respawns): it acts and sends from
+    the step it is listed again, and is learned from on the steps it plays, as an agent that joins late is."""
+    cfg = config(env=f"{__name__}:ReviveEnv")
+    vec = VecEnv(env_factory(cfg), 4)
+    torch.manual_seed(0)
+    learner = EnvLearner(cfg, vec.layout)
+    ro = play(vec, learner.policy, np.random.SeedSequence(0), torch.Generator().manual_seed(0))
+    np.testing.assert_array_equal(ro.length, [4] * 4)
+    assert ro.alive[:, :, 0].T.tolist() == [[True, False, True, False]] * 4
+    assert ro.alive[:, :, 1].all()
+    assert torch.isfinite(torch.tensor(list(learner.update(ro).values()))).all()
+
+
 def test_box_actions_are_gaussian_and_padded() -> None:
     cfg = config(env_kwargs={"box": True})
     vec = VecEnv(env_factory(cfg), 4)
@@ -334,9 +364,10 @@ def test_actions_reach_the_env_in_its_own_space(act: str) -> None:
                     np.testing.assert_allclose(actions[a].ravel(), want, rtol=1e-6)
 
 
-@pytest.mark.parametrize("obs", ["image", "discrete from 1", "multidiscrete", "multibinary", "dict"])
+@pytest.mark.parametrize("obs", ["image", "discrete from 1", "multidiscrete", "multibinary", "dict", "text"])
 def test_observations_of_any_flattenable_space_are_flattened(obs: str) -> None:
-    """Box values as they are; Discrete and MultiDiscrete one-hot, MultiBinary bits, Dict concatenated."""
+    """Box values as they are; Discrete and MultiDiscrete one-hot, MultiBinary bits, Dict concatenated, Text as
+    each character's index in its charset (padded with the charset's size)."""
     vec = VecEnv(env_factory(config(env=f"{__name__}:SpacesEnv", env_kwargs={"obs": obs})), 1)
     space = SPACES[obs]
     assert vec.layout.obs_sizes == (spaces.flatdim(space),) * 2

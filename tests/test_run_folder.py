@@ -39,7 +39,15 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.errors import ConfigError
 from bitcomm.learn.config import make_train_config
 from bitcomm.learn.learner import Learner
-from bitcomm.learn.run_folder import RESUMES, learner_state, machine_label, pointed_at, restore_learner, run_machines
+from bitcomm.learn.run_folder import (
+    RESUMES,
+    kept_budget,
+    learner_state,
+    machine_label,
+    pointed_at,
+    restore_learner,
+    run_machines,
+)
 from bitcomm.provenance import machine
 from bitcomm.run_lock import LOCK, run_lock
 
@@ -260,11 +268,31 @@ def test_a_resume_from_python_with_another_config_is_one_line_naming_the_option(
 
 
 def test_a_resume_at_or_past_its_budget_says_it_has_nothing_to_train(run: Path, capsys) -> None:
-    """`make train` run again resumes a finished run: it trains nothing, and says so rather than looking stuck."""
-    for budget in ("48", "32"):
+    """`make train` run again resumes a finished run: it trains nothing, and says so rather than looking stuck. A
+    budget below what was played keeps the run's own in config.json and the checkpoint, where the resume that trained
+    nothing recorded the smaller figure as the run's budget."""
+    for budget, stays in (("48", ""), ("32", " (its budget stays 48)")):
         assert main(["train", *QUICK, "--out", str(run), "--resume", "--episodes", budget]) == 0
-        assert f"already played 48 episodes of --episodes {budget}; nothing to train" in capsys.readouterr().out
+        line = f"already played 48 episodes of --episodes {budget}; nothing to train{stays}\n"
+        assert line in capsys.readouterr().out
+        assert json.loads((run / "config.json").read_text())["episodes"] == 48
+        assert read_config(run)["episodes"] == 48
     assert checkpoints(run)[-1][0] == 48
+
+
+@pytest.mark.parametrize(
+    ("asked", "played", "recorded", "kept"),
+    [
+        (300, 200, 200, 300),  # a larger budget: trains on to it
+        (200, 200, 200, 200),  # `make train` again
+        (100, 200, 200, 200),  # less than played: the run's budget stays
+        (100, 120, 200, 120),  # a run stopped short of its budget: what it played
+        (150000, 200064, 200000, 200000),  # a batch past its budget (a3c): the budget, not the overshoot
+        (200000, 200064, 200000, 200000),
+    ],
+)
+def test_the_budget_a_resume_records(asked: int, played: int, recorded: int, kept: int) -> None:
+    assert kept_budget(asked, played, recorded) == kept
 
 
 def test_eval_refuses_a_task_whose_agents_hear_another_number_of_senders() -> None:

@@ -210,7 +210,7 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
 
     from bitcomm.learn.learner import Learner
 
-    saved = prepare(cfg, out, resume)
+    cfg, saved = prepare(cfg, out, resume)
     torch.manual_seed(cfg.seed)
     learner = Learner(cfg)
     prog = Progress()

@@ -66,7 +66,7 @@ def train_env(cfg: EnvTrainConfig, out: str | Path, resume: bool = False, progre
 
 
 def _train(cfg: EnvTrainConfig, vec: Any, out: Path, resume: bool, progress: bool) -> Path:
-    saved = prepare(cfg, out, resume)
+    cfg, saved = prepare(cfg, out, resume)
     torch.manual_seed(cfg.seed)
     learner = EnvLearner(cfg, vec.layout)
     generator = torch.Generator().manual_seed(cfg.seed)

@@ -497,7 +497,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
 
     from bitcomm.learn.learner import Learner
 
-    saved = prepare(cfg, out, resume)
+    cfg, saved = prepare(cfg, out, resume)
     torch.manual_seed(cfg.seed)
     learner = Learner(cfg)
     generator = torch.Generator().manual_seed(cfg.seed)

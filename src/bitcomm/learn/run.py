@@ -90,7 +90,7 @@ def train_sync(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool
     from bitcomm.learn.learner import Learner
     from bitcomm.learn.rollout import Collector
 
-    saved = prepare(cfg, out, resume)
+    cfg, saved = prepare(cfg, out, resume)
     torch.manual_seed(cfg.seed)
     learner = Learner(cfg)
     generator = torch.Generator().manual_seed(cfg.seed)

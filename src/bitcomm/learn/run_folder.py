@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import errno
 import functools
 import json
@@ -119,6 +120,9 @@ class RunConfig(Protocol):
     @property
     def checkpoint_seconds(self) -> float: ...
     def to_dict(self) -> dict[str, Any]: ...
+
+
+RunConfigT = TypeVar("RunConfigT", bound=RunConfig)
 
 
 UNRECORDED = "unrecorded"
@@ -605,13 +609,14 @@ def check_start(out: Path, resume: bool) -> None:
         )
 
 
-def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
-    """Check the folder (its lock held) and clear what a killed run left; on resume return the
+def prepare(cfg: RunConfigT, out: Path, resume: bool) -> tuple[RunConfigT, dict[str, Any] | None]:
+    """Check the folder (its lock held) and clear what a killed run left; return the config the run goes on under
+    (`cfg`, its budget kept by `kept_budget` where a resume asks for less than was played) and, on resume, the
     checkpoint's state (with its weights), else None."""
     check_start(out, resume)
     clean(out)
     if not resume:
-        return None
+        return cfg, None
     with older_checkpoint_advised(out):  # a damaged file, not a config this resume may not change
         weights, info = load_weights(out)
         state = load_state(resolve(out))
@@ -625,8 +630,19 @@ def prepare(cfg: RunConfig, out: Path, resume: bool) -> dict[str, Any] | None:
         read_metrics(out / "metrics.csv", int(state["batches"]))
     played = int(state["episodes"])
     if played >= cfg.episodes:  # `make train` run again: say why nothing trains
-        print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train")
-    return {**state, "weights": weights, "info": info}
+        budget = kept_budget(cfg.episodes, played, int(info["config"]["episodes"]))
+        stays = f" (its budget stays {budget:,})" if budget != cfg.episodes else ""
+        print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train{stays}")
+        cfg = dataclasses.replace(cfg, episodes=budget)  # type: ignore[type-var]  # both configs are dataclasses
+    return cfg, {**state, "weights": weights, "info": info}
+
+
+def kept_budget(asked: int, played: int, recorded: int) -> int:
+    """The budget a run records when a resume asks for `asked` episodes, `played` of them already played under the
+    `recorded` budget: `asked`, unless that is below what was played, where nothing trains and the record keeps the
+    budget it had, or what was played if that is less (a run stopped short of it): a resume that trained nothing
+    wrote the smaller figure into config.json and the checkpoint as the run's budget."""
+    return asked if asked >= played else max(asked, min(recorded, played))
 
 
 def pointed_at(episodes: int, file: Path) -> str:
