@@ -505,6 +505,38 @@ def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
 
 
+GRID = ["--policy", "oracle", "--size", "4", "--bits", "4"]
+
+
+@pytest.mark.parametrize(
+    ("argv", "first_step"),
+    [
+        (["sweep", *GRID, "--param", "flip_prob=0,0.1"], "parse_param"),
+        (["variance", "runs/some-run"], "variance_config"),
+        (["analyze", *GRID], "source_from_args"),
+    ],
+    ids=["sweep", "variance", "analyze"],
+)
+def test_sigterm_as_a_command_starts_stops_it_as_ctrl_c_does(
+    argv: list[str], first_step: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    """`timeout`, `kill PID` or a scheduler's time limit while `sweep`, `variance` or `analyze` started (or worked)
+    killed it at once, by SIGTERM's default, where Ctrl-C stops it in one line; SIGTERM now does too, exit 143. Here
+    the signal comes with the command's first step."""
+    import importlib
+
+    def sigterm(*args: Any) -> None:
+        if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:  # it would end the command, and pytest with it
+            raise AssertionError("SIGTERM would have killed the command at once")
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(importlib.import_module(f"bitcomm.commands.{argv[0]}"), first_step, sigterm)
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 143
+    assert capsys.readouterr().err == f"bitcomm {argv[0]}: interrupted\n"
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
 def test_a_runs_stop_reaches_the_study_as_it_was_raised(tmp_path: Path) -> None:
     """A study's run sends its `Stopped` back to the study through a pipe. Rebuilt from its message (the signal's
     name) it failed to unpickle there, which broke the pool: the study ended every other run at once, saved or not,
