@@ -294,6 +294,47 @@ def test_partial_run_is_resumed_and_another_run_is_refused(tmp_path: Path) -> No
         execute(other, 20, 1000)
 
 
+def test_a_run_a_stopping_study_never_began_leaves_no_folder_and_the_study_again_trains_it(tmp_path: Path) -> None:
+    """A study stopped between its runs: its worker, given the next run, starts none (`_stopping`), but it had made
+    that run's folder first, and the study left it empty. No folder is made for it now; the study again trains it."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    import torch
+
+    from bitcomm.studies.compare import _init_worker
+
+    torch.set_num_threads(1)
+    task = TaskConfig(EnvConfig(size=3, max_steps=16), ChannelConfig(bits=4))
+    common = dict(out=tmp_path, techniques=("improved-onehot",), seeds=1, task=task, episodes=32)
+    (run,) = plan(CompareConfig(**common, learning={"num_envs": 16}))
+    ctx = multiprocessing.get_context("spawn")
+    stopping = ctx.Value("b", 1, lock=False)  # the study is stopping its runs
+    with ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker, initargs=(os.getpid(), stopping)) as pool:
+        with pytest.raises(KeyboardInterrupt):
+            pool.submit(execute, run, 20, 1000).result(timeout=120)
+    assert list(tmp_path.iterdir()) == []
+    assert execute(run, 20, 1000) == "new" and (run.folder / "evaluation.json").is_file()
+
+
+def test_a_runs_folder_made_for_it_goes_when_it_stops_before_writing_anything(tmp_path: Path) -> None:
+    """A run stopped as it began (its lock taken, nothing written) leaves no folder, nor those made above it; one that
+    wrote a file, and a folder that was there before, stay."""
+    from bitcomm.run_lock import run_lock
+    from bitcomm.studies.compare import made_for_the_run
+
+    study = tmp_path / "study"
+    study.mkdir()
+    with pytest.raises(KeyboardInterrupt), made_for_the_run(study / "runs" / "a" / "seed0"):
+        with run_lock(study / "runs" / "a" / "seed0"):
+            raise KeyboardInterrupt
+    assert list(study.iterdir()) == []
+    with pytest.raises(KeyboardInterrupt), made_for_the_run(study / "runs" / "a" / "seed1"):
+        (study / "runs" / "a" / "seed1" / "config.json").write_text("{}")
+        raise KeyboardInterrupt
+    assert [p.name for p in (study / "runs" / "a" / "seed1").iterdir()] == ["config.json"]
+
+
 def test_a_folder_holding_a_run_of_the_other_kind_or_no_run_s_config_is_one_line(tmp_path: Path) -> None:
     """A grid study and a study on a wrapped env share the layout runs/<technique>/seed<k>: either one pointed at the
     other's --out ended in a KeyError traceback ('task', 'channel') reading the other's config.json."""
@@ -502,6 +543,38 @@ def test_sigterm_interrupts_a_study_as_ctrl_c_does() -> None:
         os.kill(os.getpid(), signal.SIGTERM)
         raise AssertionError("not reached: the handler raises as the signal arrives")
     assert stopped.value.exit_code == 143
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+GRID = ["--policy", "oracle", "--size", "4", "--bits", "4"]
+
+
+@pytest.mark.parametrize(
+    ("argv", "first_step"),
+    [
+        (["sweep", *GRID, "--param", "flip_prob=0,0.1"], "parse_param"),
+        (["variance", "runs/some-run"], "variance_config"),
+        (["analyze", *GRID], "source_from_args"),
+    ],
+    ids=["sweep", "variance", "analyze"],
+)
+def test_sigterm_as_a_command_starts_stops_it_as_ctrl_c_does(
+    argv: list[str], first_step: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    """`timeout`, `kill PID` or a scheduler's time limit while `sweep`, `variance` or `analyze` started (or worked)
+    killed it at once, by SIGTERM's default, where Ctrl-C stops it in one line; SIGTERM now does too, exit 143. Here
+    the signal comes with the command's first step."""
+    import importlib
+
+    def sigterm(*args: Any) -> None:
+        if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:  # it would end the command, and pytest with it
+            raise AssertionError("SIGTERM would have killed the command at once")
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(importlib.import_module(f"bitcomm.commands.{argv[0]}"), first_step, sigterm)
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 143
+    assert capsys.readouterr().err == f"bitcomm {argv[0]}: interrupted\n"
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
 
 

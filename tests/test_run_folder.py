@@ -1218,6 +1218,43 @@ def test_a_stop_asked_while_the_last_checkpoint_is_saved_stops_the_run(tmp_path:
     assert stopped.value.episodes == 32 and stopped.value.checkpoint == tmp_path / "ckpt32"
 
 
+def test_a_second_ctrl_c_while_the_stop_saves_waits_for_the_plot(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C again while the first one's checkpoint was saved stopped the run before its plot was drawn: the
+    checkpoint held batches that learning_curve.png did not show (here, no curve at all). The second signal waits for
+    the save, checkpoint and plot, and the run stops as the first asked, saved, exit 130."""
+    from bitcomm.learn import run_folder
+    from bitcomm.learn.run import train
+    from bitcomm.stop_signals import Stopped
+
+    monkeypatch.setattr(run_folder, "REPEAT_S", 0.0)  # every later signal is a second one
+    log, plot = run_folder.Logger.log, run_folder.plot_learning_curve
+
+    def log_then_ctrl_c(logger: Any, row: dict[str, float]) -> None:
+        log(logger, row)
+        if row["episodes"] == 32:  # the first Ctrl-C, while the second batch was played
+            signal.raise_signal(signal.SIGINT)
+
+    def ctrl_c_then_plot(*args: Any) -> Path:
+        signal.raise_signal(signal.SIGINT)  # the second, once the checkpoint is written
+        return plot(*args)
+
+    monkeypatch.setattr(run_folder.Logger, "log", log_then_ctrl_c)
+    monkeypatch.setattr(run_folder, "plot_learning_curve", ctrl_c_then_plot)
+    out = tmp_path / "run"
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt) as stopped:  # rather than pytest's own stop, where it is not `Stopped`
+            train(tiny_config(episodes=64, checkpoint_seconds=3600.0), out, progress=False)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert isinstance(stopped.value, Stopped), "the second Ctrl-C cut the save short"
+    assert stopped.value.exit_code == 130 and stopped.value.episodes == 32
+    assert json.loads((out / "checkpoints" / "latest.json").read_text())["episodes"] == 32
+    assert (out / "learning_curve.png").is_file() and (out / "learning_curve.svg").is_file()
+
+
 def test_a_study_worker_leaves_sigterm_to_its_parent() -> None:
     """`bitcomm compare` stops its runs with SIGTERM at once; only a process started as a program takes it over."""
     import multiprocessing

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -100,3 +101,20 @@ def test_a_learned_policy_reads_the_same_at_every_point_of_its_own_task_as_bitco
     params = {"act_delay": (0,), "drop_prob": (0.0,), "flip_prob": (0.0,)}  # each the run's own task
     points = run_sweep([PolicySource("run", str(run))], cfg.task, params, episodes=40, seed=3)
     assert [p.result for p in points] == [evaluate_checkpoint(run, episodes=40, seed=3)] * 3
+
+
+def test_a_table_stopped_as_it_is_written_keeps_the_one_before(tmp_path: Path) -> None:
+    """`sweep`, `variance` or `scaling` stopped (Ctrl-C, SIGTERM) while it wrote its CSV left half a table; it is
+    written whole or not at all."""
+    from bitcomm.studies.tables import write_rows_csv
+
+    path = write_rows_csv([{"value": 1}], ["value"], tmp_path / "sweep.csv")
+    before = path.read_text()
+
+    def stopped_midway() -> Iterator[dict[str, int]]:
+        yield {"value": 2}
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_rows_csv(stopped_midway(), ["value"], path)
+    assert path.read_text() == before and [p.name for p in tmp_path.iterdir()] == ["sweep.csv"]

@@ -96,6 +96,36 @@ def repeats_count_once() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def held() -> Iterator[list[int]]:
+    """Inside, a stop signal waits for the block to end, then goes to its handler; yields the signals waiting. For a
+    save that must be whole: a second Ctrl-C while a stop's checkpoint was saved stopped the run before its plot was
+    drawn, so learning_curve.png showed less than the checkpoint held. A block that ends in a stop
+    (KeyboardInterrupt, `Stopped`) drops them: the stop they ask for is under way. Only stop signals that a Python
+    handler has (a default one still ends the process at once), and only in the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield []
+        return
+    taken = {s: h for s in STOP_SIGNALS if callable(h := signal.getsignal(s))}
+    waiting: list[int] = []
+
+    def wait(signum: int, frame: Any) -> None:
+        waiting.append(signum)
+
+    for s in taken:
+        signal.signal(s, wait)
+    try:
+        yield waiting
+    except KeyboardInterrupt:
+        waiting.clear()
+        raise
+    finally:
+        for s, handler in taken.items():
+            signal.signal(s, handler)
+        for signum in waiting:
+            signal.raise_signal(signum)
+
+
+@contextlib.contextmanager
 def deaf_children() -> Iterator[None]:
     """Processes started inside begin with `STOP_SIGNALS` blocked (a signal mask outlives fork and exec), so that a
     stop signal sent to the whole process group reaches the trainer alone: a worker of bitcomm's unblocks them once

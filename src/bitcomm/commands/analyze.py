@@ -19,7 +19,9 @@ from bitcomm.commands.flags import (
     out_dir,
     use_threads,
 )
+from bitcomm.files import write_text_atomic
 from bitcomm.policies.source import add_policy_flags, source_from_args
+from bitcomm.stop_signals import sigterm_interrupts
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -50,6 +52,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run)
 
 
+@sigterm_interrupts()  # from its first line: `timeout` or a scheduler stops it as Ctrl-C does, exit 143
 def run(args: argparse.Namespace) -> int:
     from bitcomm.studies.analysis import analyze_samples, bit_maps, collect_messages, markdown_summary, save_heatmaps
 
@@ -62,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     heatmaps = save_heatmaps(bit_maps(samples, task), out / "bits.png", f"{source.label}: P(bit = 1) by observed goal")
     summary = out / "summary.md"
-    summary.write_text(markdown_summary(report, heatmaps.name))
+    write_text_atomic(summary, markdown_summary(report, heatmaps.name))
     write_provenance(args, out, task)
     if args.json:
         json.dump(report.to_dict(), sys.stdout)

@@ -13,6 +13,7 @@ from bitcomm.commands.flags import EVAL_EPISODES, SEED, add_threads_flag, check_
 from bitcomm.config import TaskConfig
 from bitcomm.errors import bad_value
 from bitcomm.policies.source import add_policy_flags, sources_from_args
+from bitcomm.stop_signals import sigterm_interrupts
 from bitcomm.studies.sweep import DEFAULT_SWEEP, SWEEPABLE, parse_param, plot_sweep, run_sweep, with_param, write_csv
 from bitcomm.studies.tables import task_title
 
@@ -55,6 +56,7 @@ def check_points(task: TaskConfig, params: dict[str, tuple[float, ...]], episode
             check_eval(with_param(task, name, value), episodes, onehot)
 
 
+@sigterm_interrupts()  # from its first line: `timeout` or a scheduler stops it as Ctrl-C does, exit 143
 def run(args: argparse.Namespace) -> int:
     episodes = args.episodes
     params = dict(parse_param(text) for text in args.param) if args.param else dict(DEFAULT_SWEEP)

@@ -23,6 +23,8 @@ from bitcomm.commands.flags import (
     use_threads,
 )
 from bitcomm.errors import bad_value, plural
+from bitcomm.files import write_text_atomic
+from bitcomm.stop_signals import sigterm_interrupts
 from bitcomm.studies.tables import task_title
 
 if TYPE_CHECKING:
@@ -123,6 +125,7 @@ def check_one_task(files: list[Path], tasks: list[TaskConfig]) -> None:
             )
 
 
+@sigterm_interrupts()  # from its first line: `timeout` or a scheduler stops it as Ctrl-C does, exit 143
 def run(args: argparse.Namespace) -> int:
     from bitcomm.policies.source import CRITIC_INPUTS, resolve_task
     from bitcomm.studies.variance import (
@@ -165,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     csv_path = write_csv(rows, out / "variance.csv")
     md_path = out / "variance.md"
-    md_path.write_text(markdown_table(rows, f"Gradient variance of the two estimators: {title}"))
+    write_text_atomic(md_path, markdown_table(rows, f"Gradient variance of the two estimators: {title}"))
     figures = plot_variance(rows, out / "variance.png", title)
     write_provenance(args, out, task)
     if args.json:

@@ -321,15 +321,15 @@ def train_a3c(cfg: TrainConfig, out: Path, resume: bool = False, progress: bool 
                     last_save = time.monotonic()
             for p in procs:
                 p.join()
-            path = save()
             if died:
+                path = save()
                 w, code = next(iter(died.items()))
                 raise ConfigError(
                     f"a3c worker {w} (pid {procs[w].pid}) died (exit code {code}); the others stopped after their "
                     f"batch, saved after {prog.episodes} episodes as {path}; {RESUMES}"
                     + (NO_BATCH_HINT if code == 1 and w not in heard else "")  # an error, not a kill
                 )
-            return saved_or_stopped(stop_asked(), prog.episodes, path, bar)
+            return saved_or_stopped(stop_asked, prog.episodes, save, bar)
         finally:
             for p in procs:
                 if p.pid is None:  # never started (start() itself failed)

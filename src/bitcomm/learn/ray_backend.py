@@ -591,8 +591,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, progress: bool) -> Path:
                         consume([batch], version - batch["version"])
                     if wanted():
                         launch(w)
-            path = save()
-            return saved_or_stopped(stop_asked(), prog.episodes, path, bar)
+            return saved_or_stopped(stop_asked, prog.episodes, save, bar)
         finally:
             actors.stop()
             bar.close()

@@ -59,7 +59,7 @@ from bitcomm.learn.held_out import HELD_OUT_COLUMN, HeldOut, held_out_seed
 from bitcomm.learn.resume_rules import RESUME_MAY_CHANGE, changed_on_resume
 from bitcomm.plotting import save_figure
 from bitcomm.run_lock import run_lock
-from bitcomm.stop_signals import REPEAT_S, Stopped
+from bitcomm.stop_signals import REPEAT_S, Stopped, held
 
 ConfigT = TypeVar("ConfigT")
 
@@ -727,12 +727,17 @@ def stopped(signum: int, episodes: int, path: Path) -> Stopped:
     return Stopped(signum, path, episodes)
 
 
-def saved_or_stopped(signum: int | None, episodes: int, path: Path, bar: Any) -> Path:
-    """The end of a trainer's loop once its last checkpoint is saved at `path`: the path, or, where
-    `stop_after_batch` asked for a stop (`signum`), the progress bar closed and `stopped` raised."""
-    if signum is not None:
-        bar.close()
-        raise stopped(signum, episodes, path)
+def saved_or_stopped(stop_asked: Callable[[], int | None], episodes: int, save: Callable[[], Path], bar: Any) -> Path:
+    """The end of a trainer's loop: its last checkpoint saved (`save()`), then its path, or, where `stop_after_batch`
+    asked for a stop (`stop_asked()`, or a stop signal that came while it saved), the progress bar closed and
+    `stopped` raised. A stop signal repeated while it saves waits for the save (`held`), then is dropped: the run is
+    stopping, saved, as it would have."""
+    with held() as waiting:
+        path = save()
+        signum = stop_asked() or next(iter(waiting), None)
+        if signum is not None:
+            bar.close()
+            raise stopped(signum, episodes, path)
     return path
 
 
@@ -756,7 +761,8 @@ def _stoppable_signals() -> list[signal.Signals]:
 def stop_after_batch() -> Iterator[Callable[[], int | None]]:
     """Ctrl-C or SIGTERM while training asks the loop to stop after the batch it is on, so that the run can
     save it and lose nothing (without this, up to `checkpoint_seconds` of training); the same signal again
-    (`REPEAT_S` or more later) stops at once. Yields a function that returns the signal asked for, or None."""
+    (`REPEAT_S` or more later) stops at once, or, during a save, once it is whole (`save_run_checkpoint`). Yields a
+    function that returns the signal asked for, or None."""
     asked: list[int] = []
     taken = {s: signal.getsignal(s) for s in _stoppable_signals()}
     first: dict[int, float] = {}
@@ -806,6 +812,7 @@ def train_batches(
     unranked = math.inf if held_out is not None else None
     try:
         with stop_after_batch() as stop_asked:
+            rank: float | None = None
             while prog.episodes < cfg.episodes:
                 before = prog.episodes
                 row = play_and_learn()
@@ -819,20 +826,16 @@ def train_batches(
                 logger.log(row)
                 bar.update(prog.episodes - before)
                 bar.set_postfix(**postfix(row))
-                signum = stop_asked()
-                if signum is not None:
-                    saved_or_stopped(signum, prog.episodes, save(rank), bar)
-                if prog.episodes >= cfg.episodes:
-                    path = save(rank)
+                if stop_asked() is not None or prog.episodes >= cfg.episodes:
                     break
                 if score is not None or time.monotonic() - last_save >= cfg.checkpoint_seconds:
                     save(rank)
                     last_save = time.monotonic()
             else:
-                path = save(None if held_out is None else held_out.play())  # resumed at its budget: nothing to play
-        # a stop asked while the last checkpoint was saved (its plot takes a second) stops here, not after the
-        # final evaluation: it was dropped, and the command went on to evaluate and exit 0
-        return saved_or_stopped(stop_asked(), prog.episodes, path, bar)
+                rank = None if held_out is None else held_out.play()  # resumed at its budget: nothing to play
+            # a stop asked while the last checkpoint was saved (its plot takes a second) stops here, not after the
+            # final evaluation: it was dropped, and the command went on to evaluate and exit 0
+            return saved_or_stopped(stop_asked, prog.episodes, lambda: save(rank), bar)
     finally:
         bar.close()
         logger.close()
@@ -860,23 +863,24 @@ def save_run_checkpoint(
     ranked = -float(np.mean(prog.recent_return)) if metric == "team_return" and prog.recent_return else rolling
     if rank is not None:
         ranked = rank
-    path = save_checkpoint(
-        out,
-        cfg.to_dict(),
-        weights,
-        prog.episodes,
-        prog.batches,
-        state,
-        rolling_length=rolling,
-        keep=cfg.keep_checkpoints,
-        rank=ranked,
-    )
-    try:
-        plot_learning_curve(out, metric)
-    except OSError as err:
-        if prog.episodes < cfg.episodes:  # mid-run: the disk that refused it would refuse the next checkpoint
-            raise
-        # finished and saved: the curve is only drawn from metrics.csv, so the run has not failed
-        resume = f"`bitcomm train --resume --out {out}` draws it"
-        print(f"warning: {os_error_line(err)}; the run is finished and saved; {resume}", file=sys.stderr)
+    with held():  # a stop signal meanwhile waits: the plot is drawn from the rows the checkpoint holds
+        path = save_checkpoint(
+            out,
+            cfg.to_dict(),
+            weights,
+            prog.episodes,
+            prog.batches,
+            state,
+            rolling_length=rolling,
+            keep=cfg.keep_checkpoints,
+            rank=ranked,
+        )
+        try:
+            plot_learning_curve(out, metric)
+        except OSError as err:
+            if prog.episodes < cfg.episodes:  # mid-run: the disk that refused it would refuse the next checkpoint
+                raise
+            # finished and saved: the curve is only drawn from metrics.csv, so the run has not failed
+            resume = f"`bitcomm train --resume --out {out}` draws it"
+            print(f"warning: {os_error_line(err)}; the run is finished and saved; {resume}", file=sys.stderr)
     return path

@@ -43,7 +43,7 @@ import signal
 import time
 import typing
 from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -444,6 +444,29 @@ def _init_worker(parent: int, stopping: Any = None) -> None:
     torch.set_num_threads(1)  # parallel runs must not share (or fight over) thread pools
 
 
+@contextlib.contextmanager
+def made_for_the_run(folder: Path) -> Iterator[None]:
+    """`folder`, and the folders above it that are missing, made for the block, and removed again where it ends in
+    an error or a stop before the run wrote anything there: a study stopped as a run began left an empty folder
+    for it (its `.lock` at most), which no later command needed."""
+    from bitcomm.run_lock import LOCK
+
+    made = [f for f in (folder, *folder.parents) if not f.exists()]  # the run's own first, then those above it
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise bad_value("out", str(folder), f"cannot create the run folder ({err.strerror or err})") from None
+    try:
+        yield
+    except BaseException:
+        for f in made:
+            with contextlib.suppress(OSError):  # one that holds anything else stays
+                if [entry.name for entry in f.iterdir()] == [LOCK]:
+                    (f / LOCK).unlink()
+                f.rmdir()
+        raise
+
+
 def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
     """Train (or resume) one run to its budget and evaluate it, holding the run folder's lock (one writer
     at a time, see `bitcomm.run_lock`); returns the status it was found in."""
@@ -452,10 +475,6 @@ def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
     from bitcomm.learn.run import train
     from bitcomm.run_lock import run_lock
 
-    try:
-        run.folder.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise bad_value("out", str(run.folder), f"cannot create the run folder ({err.strerror or err})") from None
     # a study's worker, which ignores Ctrl-C while idle (`_init_worker`), takes it (or the parent's SIGINT, `stop_runs`)
     # while it works on a run: training stops after the batch it is on, saved, as `bitcomm train` does
     worker = multiprocessing.parent_process() is not None and signal.getsignal(signal.SIGINT) == signal.SIG_IGN
@@ -466,7 +485,7 @@ def execute(run: Run, eval_episodes: int, eval_seed: int) -> str:
         # then trained on till the study ended it at once, `STOP_GRACE_S` later, unsaved
         if worker and _stopping is not None and _stopping.value:
             raise KeyboardInterrupt
-        with run_lock(run.folder):
+        with made_for_the_run(run.folder), run_lock(run.folder):
             status = run_status(run)
             if status != "done":
                 if isinstance(run.train, EnvTrainConfig):

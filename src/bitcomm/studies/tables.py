@@ -8,18 +8,25 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from bitcomm.files import write_atomic
+
 if TYPE_CHECKING:
     from bitcomm.config import TaskConfig
 
 
 def write_rows_csv(rows: Iterable[Mapping[str, object]], fieldnames: Sequence[str], path: str | Path) -> Path:
-    """Write `rows` under a header of `fieldnames` to `path` (creating its folder); returns the path."""
+    """Write `rows` under a header of `fieldnames` to `path` (creating its folder), whole or not at all (a study
+    stopped as it wrote left half a table); returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(fieldnames))
-        writer.writeheader()
-        writer.writerows(rows)
+
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(fieldnames))
+            writer.writeheader()
+            writer.writerows(rows)
+
+    write_atomic(path, write)
     return path
 
 
