@@ -550,20 +550,28 @@ GRID = ["--policy", "oracle", "--size", "4", "--bits", "4"]
 
 
 @pytest.mark.parametrize(
-    ("argv", "first_step"),
+    ("argv", "first_step", "output"),
     [
-        (["sweep", *GRID, "--param", "flip_prob=0,0.1"], "parse_param"),
-        (["variance", "runs/some-run"], "variance_config"),
-        (["analyze", *GRID], "source_from_args"),
+        (["sweep", *GRID, "--param", "flip_prob=0,0.1"], "parse_param", ("--out", "out")),
+        (["variance", "runs/some-run"], "variance_config", ("--out", "out")),
+        (["analyze", *GRID], "source_from_args", ("--out", "out")),
+        (["render", *GRID], "source_from_args", ("--out", "out.gif")),
+        (["export", "runs/some-run"], "_check_output", ("--onnx", "out.onnx")),
     ],
-    ids=["sweep", "variance", "analyze"],
+    ids=["sweep", "variance", "analyze", "render", "export"],
 )
 def test_sigterm_as_a_command_starts_stops_it_as_ctrl_c_does(
-    argv: list[str], first_step: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+    argv: list[str],
+    first_step: str,
+    output: tuple[str, str],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture,
 ) -> None:
-    """`timeout`, `kill PID` or a scheduler's time limit while `sweep`, `variance` or `analyze` started (or worked)
-    killed it at once, by SIGTERM's default, where Ctrl-C stops it in one line; SIGTERM now does too, exit 143. Here
-    the signal comes with the command's first step."""
+    """`timeout`, `kill PID` or a scheduler's time limit while `sweep`, `variance`, `analyze`, `render` or `export`
+    started (or worked) killed it at once, by SIGTERM's default, where Ctrl-C stops it in one line (and a file being
+    written, whole or not at all, leaves no temporary behind); SIGTERM now does too, exit 143. Here the signal comes
+    with the command's first step."""
     import importlib
 
     def sigterm(*args: Any) -> None:
@@ -573,7 +581,8 @@ def test_sigterm_as_a_command_starts_stops_it_as_ctrl_c_does(
 
     monkeypatch.setattr(importlib.import_module(f"bitcomm.commands.{argv[0]}"), first_step, sigterm)
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
-    assert main([*argv, "--out", str(tmp_path / "out")]) == 143
+    flag, name = output
+    assert main([*argv, flag, str(tmp_path / name)]) == 143
     assert capsys.readouterr().err == f"bitcomm {argv[0]}: interrupted\n"
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -49,6 +50,25 @@ def test_truncated_episode_has_max_steps_frames(tmp_path: Path) -> None:
     gif = save_gif(frames, tmp_path / "t.gif")
     with Image.open(gif) as im:
         assert im.n_frames == 5
+
+
+def test_a_gif_stopped_as_it_is_written_leaves_the_one_before(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`render` stopped (Ctrl-C, a full disk) as it wrote the GIF left half of one in place of the one before."""
+    task = TaskConfig(EnvConfig(size=6, max_steps=5), ChannelConfig(bits=6))
+    frames = render_frames(record_episode(RandomAgent(task, seed=1), task, seed=3))
+    gif = save_gif(frames, tmp_path / "t.gif")
+    before = gif.read_bytes()
+    save = Image.Image.save
+
+    def half_then_stop(image: Image.Image, fp: Any, *args: Any, **kwargs: Any) -> None:
+        save(image, fp, *args, **kwargs)
+        Path(fp).write_bytes(Path(fp).read_bytes()[:100])
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Image.Image, "save", half_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        save_gif(frames[:2], gif)
+    assert gif.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["t.gif"]
 
 
 def test_cli_writes_gif_and_png_frames(tmp_path: Path) -> None:

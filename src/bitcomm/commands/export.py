@@ -13,6 +13,7 @@ from pathlib import Path
 
 from bitcomm.commands.flags import out_file
 from bitcomm.errors import bad_value
+from bitcomm.stop_signals import sigterm_interrupts
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -43,6 +44,7 @@ def _check_output(path: Path) -> None:
             raise bad_value("onnx", str(path), f"it or its card would replace the run's {target.name}")
 
 
+@sigterm_interrupts()  # from its first line: a stop leaves no half-written file, nor its temporary
 def run(args: argparse.Namespace) -> int:
     from bitcomm.policies.controller import Controller
     from bitcomm.policies.onnx_export import export_onnx

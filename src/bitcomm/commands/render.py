@@ -19,6 +19,7 @@ from bitcomm.commands.flags import (
 )
 from bitcomm.errors import bad_value
 from bitcomm.policies.source import add_policy_flags, source_from_args
+from bitcomm.stop_signals import sigterm_interrupts
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -49,6 +50,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run)
 
 
+@sigterm_interrupts()  # from its first line: a stop leaves no half-written file, nor its temporary
 def run(args: argparse.Namespace) -> int:
     from bitcomm.studies.render import record_episode, render_frames, save_gif, save_png_frames
 

@@ -23,6 +23,7 @@ from bitcomm.channel.core import bits_to_index
 from bitcomm.config import TaskConfig
 from bitcomm.envs.core import MOVE_NAMES
 from bitcomm.envs.vec import VecGoalExchange
+from bitcomm.files import write_atomic
 from bitcomm.policies.agent_policies import AgentPolicy, BatchedPolicy
 
 # tab10: distinct on white, and the colours matplotlib users know
@@ -168,11 +169,16 @@ def render_frames(record: EpisodeRecord, cell_px: int | None = None) -> list[Ima
 
 def save_gif(frames: list[Image.Image], path: str | Path, fps: float = 2.0) -> Path:
     """An animated GIF that loops, one frame per step (frames differ at least in their step counter,
-    so no encoder merges two of them)."""
+    so no encoder merges two of them), written whole or not at all: `render` stopped as it wrote left half a GIF."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     duration = int(round(1000 / fps))
-    frames[0].save(path, save_all=True, append_images=frames[1:], duration=duration, loop=0, optimize=False)
+    write_atomic(
+        path,
+        lambda tmp: frames[0].save(
+            tmp, format="GIF", save_all=True, append_images=frames[1:], duration=duration, loop=0, optimize=False
+        ),
+    )
     return path
 
 
