@@ -15,7 +15,7 @@ from bitcomm.config import ChannelConfig, EnvConfig, TaskConfig
 from bitcomm.envs.vec import VecGoalExchange
 from bitcomm.policies.agent_policies import OracleAgent, RandomAgent
 from bitcomm.policies.reference import OraclePolicy
-from bitcomm.studies.render import record_episode, render_frames, save_gif
+from bitcomm.studies.render import record_episode, render_frames, save_gif, save_png_frames
 
 TINY = TaskConfig(EnvConfig(size=4), ChannelConfig(bits=4))
 
@@ -69,6 +69,30 @@ def test_a_gif_stopped_as_it_is_written_leaves_the_one_before(tmp_path: Path, mo
     with pytest.raises(KeyboardInterrupt):
         save_gif(frames[:2], gif)
     assert gif.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["t.gif"]
+
+
+def test_png_frames_stopped_as_one_is_written_leave_no_half_frame(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`render --frames-dir` stopped (SIGTERM, Ctrl-C) as it wrote a frame left that frame half written."""
+    task = TaskConfig(EnvConfig(size=6, max_steps=5), ChannelConfig(bits=6))
+    frames = render_frames(record_episode(RandomAgent(task, seed=1), task, seed=3))
+    save = Image.Image.save
+    written: list[Any] = []
+
+    def half_the_second_then_stop(image: Image.Image, fp: Any, *args: Any, **kwargs: Any) -> None:
+        save(image, fp, *args, **kwargs)
+        written.append(fp)
+        if len(written) == 2:
+            Path(fp).write_bytes(Path(fp).read_bytes()[:100])
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(Image.Image, "save", half_the_second_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        save_png_frames(frames, tmp_path / "frames")
+    monkeypatch.undo()
+    assert [p.name for p in (tmp_path / "frames").iterdir()] == ["frame_001.png"]
+    Image.open(tmp_path / "frames" / "frame_001.png").load()
 
 
 def test_cli_writes_gif_and_png_frames(tmp_path: Path) -> None:

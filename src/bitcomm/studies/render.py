@@ -13,6 +13,7 @@ Rendering lives here and only reads an `EpisodeRecord`; recording plays the epis
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 from typing import NamedTuple
 
@@ -183,13 +184,14 @@ def save_gif(frames: list[Image.Image], path: str | Path, fps: float = 2.0) -> P
 
 
 def save_png_frames(frames: list[Image.Image], folder: str | Path) -> list[Path]:
-    """`frame_001.png`, ... (numbered by step) in `folder`."""
+    """`frame_001.png`, ... (numbered by step) in `folder`, each written whole or not at all: `render` stopped as it
+    wrote one left that frame half written."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     width = max(3, len(str(len(frames))))
     paths = []
     for t, frame in enumerate(frames, start=1):
         p = folder / f"frame_{t:0{width}d}.png"
-        frame.save(p)
+        write_atomic(p, functools.partial(frame.save, format="PNG"))  # the temporary name says no format
         paths.append(p)
     return paths
