@@ -41,6 +41,7 @@ from bitcomm.learn.config import make_train_config
 from bitcomm.learn.learner import Learner
 from bitcomm.learn.run_folder import (
     RESUMES,
+    budget_note,
     kept_budget,
     learner_state,
     machine_label,
@@ -293,6 +294,21 @@ def test_a_resume_at_or_past_its_budget_says_it_has_nothing_to_train(run: Path, 
 )
 def test_the_budget_a_resume_records(asked: int, played: int, recorded: int, kept: int) -> None:
     assert kept_budget(asked, played, recorded) == kept
+
+
+@pytest.mark.parametrize(
+    ("asked", "kept", "recorded", "note"),
+    [
+        (48, 48, 48, ""),
+        (32, 48, 48, " (its budget stays 48)"),
+        (500, 896, 200000, " (its budget is now 896, the episodes played, not 200,000)"),  # a run stopped short
+    ],
+)
+def test_a_resume_that_trains_nothing_says_what_budget_it_records(
+    asked: int, kept: int, recorded: int, note: str
+) -> None:
+    """A run stopped at 896 of 200,000 episodes, resumed with --episodes 500, was told its budget "stays 896"."""
+    assert budget_note(asked, kept, recorded) == note
 
 
 def test_eval_refuses_a_task_whose_agents_hear_another_number_of_senders() -> None:

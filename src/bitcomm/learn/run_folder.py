@@ -631,8 +631,8 @@ def prepare(cfg: RunConfigT, out: Path, resume: bool) -> tuple[RunConfigT, dict[
     played = int(state["episodes"])
     if played >= cfg.episodes:  # `make train` run again: say why nothing trains
         budget = kept_budget(cfg.episodes, played, int(info["config"]["episodes"]))
-        stays = f" (its budget stays {budget:,})" if budget != cfg.episodes else ""
-        print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train{stays}")
+        note = budget_note(cfg.episodes, budget, int(info["config"]["episodes"]))
+        print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train{note}")
         cfg = dataclasses.replace(cfg, episodes=budget)  # type: ignore[type-var]  # both configs are dataclasses
     return cfg, {**state, "weights": weights, "info": info}
 
@@ -643,6 +643,16 @@ def kept_budget(asked: int, played: int, recorded: int) -> int:
     budget it had, or what was played if that is less (a run stopped short of it): a resume that trained nothing
     wrote the smaller figure into config.json and the checkpoint as the run's budget."""
     return asked if asked >= played else max(asked, min(recorded, played))
+
+
+def budget_note(asked: int, kept: int, recorded: int) -> str:
+    """What a resume that trains nothing says of the budget it records (`kept_budget`) where that is not the one
+    asked: a run stopped short of its budget was told its budget "stays" at what it played, which it had not."""
+    if kept == asked:
+        return ""
+    if kept == recorded:
+        return f" (its budget stays {kept:,})"
+    return f" (its budget is now {kept:,}, the episodes played, not {recorded:,})"
 
 
 def pointed_at(episodes: int, file: Path) -> str:
