@@ -630,8 +630,9 @@ def prepare(cfg: RunConfigT, out: Path, resume: bool) -> tuple[RunConfigT, dict[
         read_metrics(out / "metrics.csv", int(state["batches"]))
     played = int(state["episodes"])
     if played >= cfg.episodes:  # `make train` run again: say why nothing trains
-        budget = kept_budget(cfg.episodes, played, int(info["config"]["episodes"]))
-        note = budget_note(cfg.episodes, budget, int(info["config"]["episodes"]))
+        recorded = int(info["config"]["episodes"])
+        budget = kept_budget(cfg.episodes, played, recorded)
+        note = budget_note(cfg.episodes, budget, recorded)
         print(f"{out}: already played {played:,} episodes of --episodes {cfg.episodes:,}; nothing to train{note}")
         cfg = dataclasses.replace(cfg, episodes=budget)  # type: ignore[type-var]  # both configs are dataclasses
     return cfg, {**state, "weights": weights, "info": info}
